@@ -1,0 +1,3 @@
+from avatarperfect_cli.cli import app
+
+app(prog_name="avatarperfect")

@@ -1,0 +1,37 @@
+"""The one interface every body model provides: a template at setup time."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+# SMPL's 24-joint kinematic tree: parent of each joint, -1 for the root (pelvis).
+SMPL_PARENTS: tuple[int, ...] = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21)
+SMPL_JOINT_NAMES: tuple[str, ...] = (
+    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle",
+    "right_ankle", "spine3", "left_foot", "right_foot", "neck", "left_collar", "right_collar", "head",
+    "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",
+    "left_hand", "right_hand",
+)  # fmt: skip
+NUM_JOINTS = 24
+
+
+@dataclass
+class BodyTemplate:
+    """A canonical body in SMPL's frame and zero pose (T-pose): +Y up, +Z the body's front, metres.
+
+    vertices:    (V, 3) canonical vertex positions
+    faces:       (F, 3) int64 triangle vertex indices, counter-clockwise seen from outside
+    weights:     (V, 24) skinning weights over the SMPL joints; rows sum to 1
+    rest_joints: (24, 3) joint positions in the canonical pose
+    uvs:         (T, 2) texture coordinates in [0, 1], or None
+    face_uvs:    (F, 3) int64 indices into `uvs`, or None
+    """
+
+    vertices: torch.Tensor
+    faces: torch.Tensor
+    weights: torch.Tensor
+    rest_joints: torch.Tensor
+    uvs: torch.Tensor | None = None
+    face_uvs: torch.Tensor | None = None
