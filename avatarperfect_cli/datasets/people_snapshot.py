@@ -1,0 +1,465 @@
+"""Monocular videos in the People-Snapshot layout, as preprocessed by InstantAvatar and GART.
+
+Layout under the dataset root:
+
+    cameras.npz                 intrinsic (3, 3), extrinsic (4, 4) world->camera (OpenCV), height, width
+    images/image_%04d.png       frames, numbered by frame id
+    masks/mask_%04d.npy         uint8 0/1 subject masks (or masks/mask_%04d.png with 0/255)
+    poses.npz                   betas (10,) or (1, 10), thetas (N, 72), transl (N, 3)
+    poses_optimized.npz         refined poses; like poses.npz, or global_orient (N, 3) + body_pose (N, 69)
+    poses/anim_nerf_{split}.npz per-split poses (InstantAvatar "refine"), same keys as above
+    subject.json                optional avatarperfect extension: {"body_model": "anny" | "smpl", ...}
+
+Which pose row belongs to which frame:
+- poses.npz, poses_optimized.npz and any other whole-sequence file: row i is frame i (as in InstantAvatar),
+  so the file needs more rows than the largest selected frame id;
+- split files (`anim_nerf_*.npz`) hold one row per frame of their split, in order: their row count must
+  equal the number of selected frames, and row k is the k-th selected frame. Any other count is an error
+  rather than a guess, because a split file indexed by frame id silently gives the wrong poses.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import tempfile
+import zipfile
+from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TypeVar
+
+import cv2
+import numpy as np
+import torch
+from PIL import Image
+
+from avatarperfect_cli.errors import InputFileError
+from avatarperfect_cli.render.camera import Camera
+
+NUM_BETAS = 10
+SPLITS = ("train", "val", "test")
+_IMAGE_NAME = re.compile(r"image_(\d{4,})\.png")
+_MAX_THREADS = 8
+
+_T = TypeVar("_T")
+_R = TypeVar("_R")
+
+
+@dataclass(frozen=True)
+class FrameRange:
+    """Frame ids start, start + step, ... up to `end` inclusive (e.g. male-3-casual trains on 0..455 step 4)."""
+
+    start: int
+    end: int
+    step: int = 1
+
+    def __post_init__(self) -> None:
+        if self.start < 0:
+            raise ValueError(f"frame range start must be >= 0, got {self.start}")
+        if self.step < 1:
+            raise ValueError(f"frame range step must be >= 1, got {self.step}")
+
+    def frame_ids(self) -> np.ndarray:
+        """(T,) int64 selected frame ids; empty when end < start."""
+        return np.arange(self.start, self.end + 1, self.step, dtype=np.int64)
+
+    def __str__(self) -> str:
+        return f"{self.start}..{self.end} step {self.step}"
+
+
+@dataclass
+class VideoDataset:
+    """T frames of one subject seen by a fixed camera.
+
+    images:    (T, H, W, 3) float32 RGB in [0, 1], composited onto white with the mask
+    masks:     (T, H, W) bool, True on the subject
+    body_pose: (T, 24, 3) float32 SMPL axis-angle, radians; joint 0 is the global orientation
+    transl:    (T, 3) float32 root translation, metres, world frame
+    betas:     (10,) float32 SMPL shape coefficients
+    camera:    the fixed camera, sized for `images`
+    frame_ids: (T,) int64 frame numbers of the images
+    subject:   the parsed subject.json (body model and shape), or None
+    """
+
+    images: torch.Tensor
+    masks: torch.Tensor
+    body_pose: torch.Tensor
+    transl: torch.Tensor
+    betas: torch.Tensor
+    camera: Camera
+    frame_ids: torch.Tensor
+    subject: dict[str, Any] | None
+
+    def __len__(self) -> int:
+        return int(self.frame_ids.shape[0])
+
+
+def load_people_snapshot(
+    root: Path,
+    frames: FrameRange | None = None,
+    split: str | None = None,
+    downscale: int = 1,
+    pose_source: str = "auto",
+) -> VideoDataset:
+    """Load a People-Snapshot folder.
+
+    frames:      frame ids to load; None loads every image in images/
+    split:       "train", "val" or "test"; with pose_source "auto" it selects poses/anim_nerf_{split}.npz
+                 when that file exists
+    downscale:   integer factor; the size becomes round(W / d) x round(H / d). Images are averaged over
+                 pixel areas (cv2.INTER_AREA) after compositing, masks are area-averaged and kept where >= 0.5,
+                 and K's rows scale by the exact size ratio per axis (pixel centres at +0.5; this equals
+                 Camera.scaled(1 / d) when d divides the size)
+    pose_source: "auto" (the split file if any, else poses_optimized.npz, else poses.npz) or a path
+                 relative to `root`
+    Raises InputFileError naming the offending file for any missing or malformed input.
+    """
+    if split is not None and split not in SPLITS:
+        raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+    if downscale < 1:
+        raise ValueError(f"downscale must be >= 1, got {downscale}")
+    root = Path(root)
+    if not root.is_dir():
+        raise InputFileError(root, "dataset folder not found")
+
+    camera = _read_camera(root / "cameras.npz")
+    frame_ids = _select_frames(root / "images", frames)
+    pose_path = _pose_path(root, split, pose_source)
+    body_pose, transl, betas = _read_poses(pose_path, frame_ids)
+    subject = _read_subject(root / "subject.json")
+
+    out_width = max(1, round(camera.width / downscale))
+    out_height = max(1, round(camera.height / downscale))
+    images = np.empty((len(frame_ids), out_height, out_width, 3), dtype=np.float32)
+    masks = np.empty((len(frame_ids), out_height, out_width), dtype=bool)
+    full_size = (out_width, out_height) == (camera.width, camera.height)
+
+    def load_frame(index: int) -> None:
+        frame = int(frame_ids[index])
+        image_path = root / "images" / f"image_{frame:04d}.png"
+        image = _read_image(image_path, camera)
+        mask = _read_mask(root / "masks", frame, camera)
+        composited = images[index] if full_size else np.empty((camera.height, camera.width, 3), np.float32)
+        np.multiply(image, np.float32(1 / 255), out=composited, dtype=np.float32)
+        np.copyto(composited, np.float32(1), where=~mask[:, :, None])
+        if full_size:
+            masks[index] = mask
+        else:
+            size = (out_width, out_height)
+            images[index] = cv2.resize(composited, size, interpolation=cv2.INTER_AREA)
+            masks[index] = cv2.resize(mask.astype(np.float32), size, interpolation=cv2.INTER_AREA) >= 0.5
+
+    _parallel_map(load_frame, range(len(frame_ids)))
+
+    K = camera.K.clone()
+    K[0] *= out_width / camera.width
+    K[1] *= out_height / camera.height
+    return VideoDataset(
+        images=torch.from_numpy(images),
+        masks=torch.from_numpy(masks),
+        body_pose=torch.from_numpy(body_pose),
+        transl=torch.from_numpy(transl),
+        betas=torch.from_numpy(betas),
+        camera=Camera(K, camera.world_to_camera, out_width, out_height),
+        frame_ids=torch.from_numpy(frame_ids),
+        subject=subject,
+    )
+
+
+def write_people_snapshot(
+    root: Path,
+    images: np.ndarray,
+    masks: np.ndarray,
+    body_pose: np.ndarray | torch.Tensor,
+    transl: np.ndarray | torch.Tensor,
+    camera: Camera,
+    betas: np.ndarray | torch.Tensor | None = None,
+    subject: dict[str, Any] | None = None,
+) -> None:
+    """Write frames 0..T-1 as a People-Snapshot folder at `root`, all at once.
+
+    images:    (T, H, W, 3) uint8 RGB, written as deterministic PNGs images/image_%04d.png
+    masks:     (T, H, W) bool, written as uint8 0/1 masks/mask_%04d.npy
+    body_pose: (T, 24, 3) SMPL axis-angle, radians, joint 0 the global orientation (poses.npz "thetas")
+    transl:    (T, 3) metres
+    camera:    the fixed camera; its size must match the images
+    betas:     (10,) SMPL shape, zeros when None
+    subject:   written to subject.json when given
+    The folder is built next to `root` and renamed into place; an existing dataset at `root` is replaced.
+    """
+    images = np.asarray(images)
+    masks = np.asarray(masks)
+    body_pose = _as_numpy(body_pose).astype(np.float32)
+    transl = _as_numpy(transl).astype(np.float32)
+    betas = np.zeros(NUM_BETAS, np.float32) if betas is None else _as_numpy(betas).astype(np.float32).reshape(-1)
+    count = images.shape[0]
+    expected = {
+        "images": (images, (count, camera.height, camera.width, 3)),
+        "masks": (masks, (count, camera.height, camera.width)),
+        "body_pose": (body_pose, (count, 24, 3)),
+        "transl": (transl, (count, 3)),
+        "betas": (betas, (NUM_BETAS,)),
+    }
+    for name, (array, shape) in expected.items():
+        if array.shape != shape:
+            raise ValueError(f"{name} has shape {array.shape}, expected {shape}")
+    if images.dtype != np.uint8 or masks.dtype != np.bool_:
+        raise ValueError(f"images must be uint8 and masks bool, got {images.dtype} and {masks.dtype}")
+
+    root = Path(root)
+    if root.exists() and not _is_replaceable(root):
+        raise InputFileError(root, "exists and is not a People-Snapshot dataset; refusing to replace it")
+    root.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{root.name}.", suffix=".tmp", dir=root.parent))
+    try:
+        (staging / "images").mkdir()
+        (staging / "masks").mkdir()
+
+        def write_frame(index: int) -> None:
+            image_path = staging / "images" / f"image_{index:04d}.png"
+            Image.fromarray(images[index]).save(image_path, format="PNG", compress_level=6)  # no tIME chunk
+            np.save(staging / "masks" / f"mask_{index:04d}.npy", masks[index].astype(np.uint8))
+
+        _parallel_map(write_frame, range(count))
+        np.savez(
+            staging / "cameras.npz",
+            intrinsic=camera.K.detach().cpu().double().numpy(),
+            extrinsic=camera.world_to_camera.detach().cpu().double().numpy(),
+            height=np.int64(camera.height),
+            width=np.int64(camera.width),
+        )
+        np.savez(staging / "poses.npz", betas=betas, thetas=body_pose.reshape(count, 72), transl=transl)
+        if subject is not None:
+            (staging / "subject.json").write_text(json.dumps(subject, indent=2, sort_keys=True) + "\n")
+        _move_into_place(staging, root)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+
+
+# ----------------------------------------------------------------------------------------------- reading
+
+
+def _read_camera(path: Path) -> Camera:
+    data = _load_npz(path, "camera file")
+    K = _array(data, "intrinsic", path, (3, 3))
+    world_to_camera = _array(data, "extrinsic", path, (4, 4))
+    rotation = world_to_camera[:3, :3]
+    rigid = (
+        np.allclose(world_to_camera[3], [0, 0, 0, 1], atol=1e-6)
+        and np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-4)
+        and np.linalg.det(rotation) > 0
+    )
+    if not rigid:
+        raise InputFileError(path, "extrinsic is not a rigid world->camera transform")
+    size = {}
+    for key in ("height", "width"):
+        value = _array(data, key, path, None)
+        if value.size != 1 or not float(value.reshape(-1)[0]).is_integer() or value.reshape(-1)[0] < 1:
+            raise InputFileError(path, f"{key} must be one positive integer, got {value.reshape(-1)[:4].tolist()}")
+        size[key] = int(value.reshape(-1)[0])
+    return Camera(torch.from_numpy(K).float(), torch.from_numpy(world_to_camera).float(), size["width"], size["height"])
+
+
+def _select_frames(images_dir: Path, frames: FrameRange | None) -> np.ndarray:
+    """(T,) int64 ids of the frames to load; each has an image in `images_dir`."""
+    try:
+        names = [entry.name for entry in os.scandir(images_dir)]
+    except OSError:
+        raise InputFileError(images_dir, "image folder not found") from None
+    matches = (_IMAGE_NAME.fullmatch(name) for name in names)
+    # Only canonical names count, so that image_0001.png and image_00001.png cannot both be frame 1.
+    available = sorted(int(m[1]) for m in matches if m and m[0] == f"image_{int(m[1]):04d}.png")
+    if not available:
+        raise InputFileError(images_dir, "no images named image_%04d.png")
+    if frames is None:
+        return np.asarray(available, dtype=np.int64)
+    selected = frames.frame_ids()
+    if selected.size == 0:
+        raise InputFileError(images_dir, f"frame range {frames} selects no frames")
+    if selected[-1] > available[-1]:
+        problem = f"frame range {frames} reaches frame {selected[-1]}, past the last image (frame {available[-1]})"
+        raise InputFileError(images_dir, problem)
+    missing = np.setdiff1d(selected, available)
+    if missing.size:
+        raise InputFileError(images_dir / f"image_{missing[0]:04d}.png", "image missing for a selected frame")
+    return selected
+
+
+def _pose_path(root: Path, split: str | None, pose_source: str) -> Path:
+    if pose_source != "auto":
+        path = root / pose_source
+        if not path.is_file():
+            raise InputFileError(path, "pose file missing")
+        return path
+    candidates = [root / "poses" / f"anim_nerf_{split}.npz"] if split else []
+    candidates += [root / "poses_optimized.npz", root / "poses.npz"]
+    for path in candidates:
+        if path.is_file():
+            return path
+    others = ", ".join(str(path.relative_to(root)) for path in candidates[:-1])
+    raise InputFileError(root / "poses.npz", f"pose file missing (also looked for {others})")
+
+
+def _read_poses(path: Path, frame_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """body_pose (T, 24, 3), transl (T, 3), betas (10,), all float32, for `frame_ids` (see the module doc)."""
+    data = _load_npz(path, "pose file")
+    if "thetas" in data:
+        thetas = _array(data, "thetas", path, (None, 72))
+    elif "global_orient" in data and "body_pose" in data:
+        global_orient = _array(data, "global_orient", path, (None, 3))
+        joints = _array(data, "body_pose", path, (global_orient.shape[0], 69))
+        thetas = np.concatenate([global_orient, joints], axis=1)
+    else:
+        raise InputFileError(path, "holds neither 'thetas' nor 'global_orient' + 'body_pose'")
+    rows = thetas.shape[0]
+    transl = _array(data, "transl", path, (rows, 3))
+    betas = _array(data, "betas", path, None)
+    if betas.shape not in ((NUM_BETAS,), (1, NUM_BETAS)):
+        raise InputFileError(path, f"'betas' has shape {betas.shape}, expected (10,) or (1, 10)")
+
+    if path.name.startswith("anim_nerf_"):
+        if rows != len(frame_ids):
+            raise InputFileError(
+                path,
+                f"split file holds {rows} pose rows for {len(frame_ids)} selected frames; "
+                "select exactly the split's frames (its rows follow them in order)",
+            )
+        index = np.arange(rows)
+    else:
+        if rows <= frame_ids.max():
+            raise InputFileError(path, f"holds {rows} pose rows, fewer than needed for frame {frame_ids.max()}")
+        index = frame_ids
+    body_pose = thetas[index].reshape(-1, 24, 3).astype(np.float32)
+    return body_pose, transl[index].astype(np.float32), betas.reshape(NUM_BETAS).astype(np.float32)
+
+
+def _read_subject(path: Path) -> dict[str, Any] | None:
+    if not path.exists():
+        return None
+    try:
+        subject = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise InputFileError(path, f"unreadable JSON ({error})") from None
+    if not isinstance(subject, dict) or not isinstance(subject.get("body_model"), str):
+        raise InputFileError(path, "expected a JSON object with a 'body_model' string")
+    return subject
+
+
+def _read_image(path: Path, camera: Camera) -> np.ndarray:
+    """(H, W, 3) uint8 RGB (a channel-reversed view of the decoded BGR array)."""
+    try:
+        image = cv2.imdecode(np.fromfile(path, dtype=np.uint8), cv2.IMREAD_COLOR)
+    except (OSError, cv2.error):
+        image = None
+    if image is None:
+        raise InputFileError(path, "image unreadable")
+    if image.shape[:2] != (camera.height, camera.width):
+        raise InputFileError(
+            path, f"image is {image.shape[1]}x{image.shape[0]}, cameras.npz says {camera.width}x{camera.height}"
+        )
+    return image[:, :, ::-1]
+
+
+def _read_mask(masks_dir: Path, frame: int, camera: Camera) -> np.ndarray:
+    """(H, W) bool subject mask of `frame`, from mask_%04d.npy (0/1) or else mask_%04d.png (0/255)."""
+    npy_path = masks_dir / f"mask_{frame:04d}.npy"
+    png_path = masks_dir / f"mask_{frame:04d}.png"
+    if npy_path.is_file():
+        path, on_value = npy_path, 1
+        try:
+            mask = np.load(npy_path, allow_pickle=False)
+        except (OSError, ValueError, EOFError):
+            raise InputFileError(path, "mask unreadable") from None
+    elif png_path.is_file():
+        path, on_value = png_path, 255
+        try:
+            mask = cv2.imdecode(np.fromfile(png_path, dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
+        except (OSError, cv2.error):
+            mask = None
+        if mask is None:
+            raise InputFileError(path, "mask unreadable")
+    else:
+        raise InputFileError(npy_path, "mask missing (no .npy or .png mask for this frame)")
+    if mask.shape != (camera.height, camera.width):
+        raise InputFileError(path, f"mask has shape {mask.shape}, expected ({camera.height}, {camera.width})")
+    on = mask == on_value
+    if not np.all(on | (mask == 0)):
+        raise InputFileError(path, f"mask values must be 0 or {on_value}")
+    return on
+
+
+def _load_npz(path: Path, what: str) -> dict[str, np.ndarray]:
+    if not path.is_file():
+        raise InputFileError(path, f"{what} missing")
+    try:
+        data = np.load(path, allow_pickle=False)
+        if not isinstance(data, np.lib.npyio.NpzFile):
+            raise ValueError("not an .npz archive")
+        with data:
+            return {key: data[key] for key in data.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
+        raise InputFileError(path, f"{what} unreadable ({error})") from None
+
+
+def _array(data: dict[str, np.ndarray], key: str, path: Path, shape: tuple[int | None, ...] | None) -> np.ndarray:
+    """data[key] as float64, checked for presence, shape (None = any size on that axis) and finiteness."""
+    if key not in data:
+        raise InputFileError(path, f"key '{key}' missing")
+    value = data[key]
+    if shape is not None and (
+        value.ndim != len(shape) or any(want is not None and got != want for got, want in zip(value.shape, shape))
+    ):
+        wanted = "(" + ", ".join("N" if want is None else str(want) for want in shape) + ")"
+        raise InputFileError(path, f"'{key}' has shape {value.shape}, expected {wanted}")
+    if not (np.issubdtype(value.dtype, np.number) or value.dtype == np.bool_):
+        raise InputFileError(path, f"'{key}' is not numeric (dtype {value.dtype})")
+    value = value.astype(np.float64)
+    if not np.all(np.isfinite(value)):
+        raise InputFileError(path, f"'{key}' holds non-finite values")
+    return value
+
+
+# ----------------------------------------------------------------------------------------------- helpers
+
+
+def _parallel_map(function: Callable[[_T], _R], items: Iterable[_T]) -> list[_R]:
+    """function over items on a thread pool (PNG codecs and numpy release the GIL); re-raises the first error."""
+    items = list(items)
+    workers = max(1, min(_MAX_THREADS, os.cpu_count() or 1, len(items)))
+    if workers == 1:
+        return [function(item) for item in items]
+    pool = ThreadPoolExecutor(max_workers=workers)
+    try:
+        return list(pool.map(function, items))
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _as_numpy(array: np.ndarray | torch.Tensor) -> np.ndarray:
+    return array.detach().cpu().numpy() if isinstance(array, torch.Tensor) else np.asarray(array)
+
+
+def _is_replaceable(root: Path) -> bool:
+    """True for a folder the writer may replace: an empty folder or a previous dataset."""
+    return root.is_dir() and ((root / "cameras.npz").is_file() or not any(root.iterdir()))
+
+
+def _move_into_place(staging: Path, root: Path) -> None:
+    """Rename the finished `staging` folder onto `root`, moving any previous dataset aside first."""
+    if not root.exists():
+        os.replace(staging, root)
+        return
+    previous = Path(tempfile.mkdtemp(prefix=f".{root.name}.", suffix=".old", dir=root.parent))
+    os.replace(root, previous / root.name)
+    try:
+        os.replace(staging, root)
+    except BaseException:
+        os.replace(previous / root.name, root)
+        raise
+    finally:
+        shutil.rmtree(previous, ignore_errors=True)

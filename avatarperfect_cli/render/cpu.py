@@ -1,0 +1,98 @@
+"""Differentiable compositing of projected Gaussians on the CPU, through the numba kernels."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numba
+import numpy as np
+import torch
+
+from avatarperfect_cli.render import cpu_kernels as kernels
+
+TILE_SIZE = 16
+
+
+def _array(tensor: torch.Tensor) -> np.ndarray:
+    return np.ascontiguousarray(tensor.detach().cpu().numpy())
+
+
+class _RasterizeToPixels(torch.autograd.Function):
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: Any,
+        means2d: torch.Tensor,
+        conics: torch.Tensor,
+        opacities: torch.Tensor,
+        features: torch.Tensor,
+        background: torch.Tensor,
+        extents: torch.Tensor,
+        depths: torch.Tensor,
+        drawn: torch.Tensor,
+        width: int,
+        height: int,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        arrays = [_array(t) for t in (means2d, conics, opacities, features, background)]
+        offsets, tile_gaussians = kernels.bin_gaussians(
+            _array(means2d), _array(extents), _array(depths), _array(drawn), width, height, TILE_SIZE
+        )
+        schedule = kernels.tile_schedule(offsets)
+        layout = (offsets, tile_gaussians, schedule, width, height, TILE_SIZE, numba.get_num_threads())
+        image, transmittance, last, weights = kernels.rasterize_forward(*arrays, *layout)
+        visibility = kernels.sum_per_gaussian(weights[:, None], tile_gaussians, means2d.shape[0])[:, 0]
+        ctx.arrays = arrays
+        ctx.layout = layout
+        ctx.transmittance = transmittance
+        ctx.last = last
+        visibility_t = torch.from_numpy(visibility)
+        ctx.mark_non_differentiable(visibility_t)
+        return torch.from_numpy(image), torch.from_numpy(1.0 - transmittance), visibility_t
+
+    @staticmethod
+    def backward(  # type: ignore[override]
+        ctx: Any, grad_image: torch.Tensor, grad_alpha: torch.Tensor, _grad_visibility: torch.Tensor
+    ) -> tuple[torch.Tensor | None, ...]:
+        means2d, _, _, _, background = ctx.arrays
+        records = kernels.rasterize_backward(
+            *ctx.arrays, *ctx.layout, ctx.transmittance, ctx.last, _array(grad_image), _array(grad_alpha)
+        )
+        grads = torch.from_numpy(kernels.sum_per_gaussian(records, ctx.layout[1], means2d.shape[0]))
+        grad_background = torch.from_numpy(
+            np.einsum("hw,hwc->c", ctx.transmittance, _array(grad_image)).astype(background.dtype)
+        )
+        return (
+            grads[:, kernels.G_MEAN_X : kernels.G_MEAN_Y + 1],
+            grads[:, kernels.G_CONIC_A : kernels.G_CONIC_C + 1],
+            grads[:, kernels.G_OPACITY],
+            grads[:, kernels.G_FEATURES :],
+            grad_background,
+            None,
+            None,
+            None,
+            None,
+            None,
+        )
+
+
+def rasterize_to_pixels(
+    means2d: torch.Tensor,
+    conics: torch.Tensor,
+    opacities: torch.Tensor,
+    features: torch.Tensor,
+    background: torch.Tensor,
+    extents: torch.Tensor,
+    depths: torch.Tensor,
+    drawn: torch.Tensor,
+    width: int,
+    height: int,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Composite projected Gaussians front to back (gsplat conventions), on the CPU.
+
+    means2d (N, 2) pixels; conics (N, 3) 1/pixel^2; opacities (N,); features (N, C) any channels;
+    background (C,); extents (N, 2) pixels and depths (N,) metres for binning; drawn (N,) bool.
+    Returns image (H, W, C), alpha (H, W) and visibility (N,) = sum over pixels of T * alpha
+    (not differentiable). Gradients flow to means2d, conics, opacities, features and background.
+    """
+    return _RasterizeToPixels.apply(
+        means2d, conics, opacities, features, background, extents, depths, drawn, width, height
+    )
