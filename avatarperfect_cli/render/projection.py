@@ -1,28 +1,15 @@
-"""EWA projection of 3D Gaussians through a pinhole camera (torch, differentiable by autograd)."""
+"""EWA projection of 3D Gaussians through a pinhole camera, differentiable (numba forward/backward)."""
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
+from typing import Any
 
+import numpy as np
 import torch
 
+from avatarperfect_cli.render import projection_kernels as kernels
 from avatarperfect_cli.render.camera import Camera
-
-ALPHA_MIN = 1.0 / 255.0
-
-
-def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
-    """(..., 4) quaternions w x y z (any norm) -> (..., 3, 3) rotation matrices."""
-    w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(quats.shape[:-1] + (3, 3))  # fmt: skip
 
 
 @dataclass
@@ -43,8 +30,53 @@ class Projection:
     @property
     def radii(self) -> torch.Tensor:
         """(N,) int32 radius in pixels of the drawn footprint, 0 where not drawn."""
-        radius = torch.ceil(self.extents.max(dim=-1).values)
+        radius = torch.ceil(self.extents.max(dim=-1).values) if len(self.extents) else self.extents[:, 0]
         return torch.where(self.drawn, radius, torch.zeros_like(radius)).to(torch.int32)
+
+
+def _array(tensor: torch.Tensor) -> np.ndarray:
+    return np.ascontiguousarray(tensor.detach().cpu().numpy())
+
+
+def _camera_arrays(camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """View matrix, (fx, fy, cx, cy) and the clamp limits of x/z and y/z (gsplat: 15% margin)."""
+    K = camera.K.detach().double().cpu()
+    fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+    margin_x, margin_y = 0.15 * camera.width / fx, 0.15 * camera.height / fy
+    limits = [cx / fx + margin_x, (camera.width - cx) / fx + margin_x, cy / fy + margin_y, (camera.height - cy) / fy + margin_y]
+    return _array(camera.world_to_camera), np.array([fx, fy, cx, cy], dtype=np.float64), np.array(limits, dtype=np.float64)
+
+
+class _ProjectGaussians(torch.autograd.Function):
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: Any,
+        means: torch.Tensor,
+        quats: torch.Tensor,
+        scales: torch.Tensor,
+        opacities: torch.Tensor,
+        camera: Camera,
+        near_plane: float,
+        far_plane: float,
+        eps2d: float,
+    ) -> tuple[torch.Tensor, ...]:
+        view, intrinsics, limits = _camera_arrays(camera)
+        view = view.astype(_array(means).dtype)
+        inputs = (_array(means), _array(quats), _array(scales))
+        means2d, conics, depths, extents, drawn = kernels.project_forward(
+            *inputs, _array(opacities), view, intrinsics, limits, camera.width, camera.height, near_plane, far_plane, eps2d
+        )
+        ctx.saved = (*inputs, view, intrinsics, limits, conics, drawn)
+        extents_t, drawn_t = torch.from_numpy(extents), torch.from_numpy(drawn)
+        ctx.mark_non_differentiable(extents_t, drawn_t)
+        return torch.from_numpy(means2d), torch.from_numpy(conics), torch.from_numpy(depths), extents_t, drawn_t
+
+    @staticmethod
+    def backward(  # type: ignore[override]
+        ctx: Any, grad_means2d: torch.Tensor, grad_conics: torch.Tensor, grad_depths: torch.Tensor, *_: Any
+    ) -> tuple[torch.Tensor | None, ...]:
+        grads = kernels.project_backward(*ctx.saved, _array(grad_means2d), _array(grad_conics), _array(grad_depths))
+        return (*(torch.from_numpy(g) for g in grads), None, None, None, None, None)
 
 
 def project_gaussians(
@@ -59,45 +91,9 @@ def project_gaussians(
 ) -> Projection:
     """Project Gaussians (gsplat's classic EWA: clamped Jacobian, eps2d added to the 2D covariance).
 
-    means (N, 3) metres, world frame; quats (N, 4) w x y z; scales (N, 3) standard deviations,
-    metres; opacities (N,) in [0, 1].
+    means (N, 3) metres, world frame; quats (N, 4) w x y z, any norm; scales (N, 3) standard
+    deviations, metres; opacities (N,) in [0, 1] (Gaussians below 1/255 are never drawn).
+    Differentiable w.r.t. means, quats and scales.
     """
-    rotation = camera.world_to_camera[:3, :3]
-    means_cam = means @ rotation.T + camera.world_to_camera[:3, 3]
-    x, y, z = means_cam.unbind(-1)
-    in_depth = (z > near_plane) & (z < far_plane)
-    z = torch.where(in_depth, z, torch.ones_like(z))  # keeps gradients finite for culled Gaussians
-
-    fx, fy, cx, cy = camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]
-    margin_x = 0.3 * 0.5 * camera.width / fx
-    margin_y = 0.3 * 0.5 * camera.height / fy
-    tx = z * torch.clamp(x / z, -(cx / fx + margin_x), (camera.width - cx) / fx + margin_x)
-    ty = z * torch.clamp(y / z, -(cy / fy + margin_y), (camera.height - cy) / fy + margin_y)
-    zero = torch.zeros_like(z)
-    jacobian = torch.stack(
-        [fx / z, zero, -fx * tx / (z * z), zero, fy / z, -fy * ty / (z * z)], dim=-1
-    ).reshape(-1, 2, 3)
-    # cov2d = (J R M)(J R M)^T with M = rotation(q) diag(s): one (2x3)(3x3) product per Gaussian.
-    screen_axes = (jacobian @ rotation) @ (quat_to_rotmat(quats) * scales[:, None, :])
-    cov2d = screen_axes @ screen_axes.transpose(1, 2)
-    cov_a = cov2d[:, 0, 0] + eps2d
-    cov_b = cov2d[:, 0, 1]
-    cov_c = cov2d[:, 1, 1] + eps2d
-    det = cov_a * cov_c - cov_b * cov_b
-    valid = in_depth & (det > 0) & (opacities >= ALPHA_MIN)
-    det = torch.where(valid, det, torch.ones_like(det))
-    conics = torch.stack([cov_c / det, -cov_b / det, cov_a / det], dim=-1)
-    means2d = torch.stack([fx * x / z + cx, fy * y / z + cy], dim=-1)
-
-    with torch.no_grad():
-        level = 2.0 * torch.log(torch.clamp_min(opacities, ALPHA_MIN) / ALPHA_MIN)
-        extents = torch.sqrt(level[:, None] * torch.stack([cov_a, cov_c], dim=-1).clamp_min(0))
-        extents = extents * math.sqrt(1.01) + 0.1  # the kernels' margin, so binning never misses a pixel
-        on_screen = (
-            (means2d[:, 0] + extents[:, 0] > 0)
-            & (means2d[:, 0] - extents[:, 0] < camera.width)
-            & (means2d[:, 1] + extents[:, 1] > 0)
-            & (means2d[:, 1] - extents[:, 1] < camera.height)
-        )
-        drawn = valid & on_screen
-    return Projection(means2d, conics, means_cam[:, 2], extents, drawn)
+    outputs = _ProjectGaussians.apply(means, quats, scales, opacities, camera, near_plane, far_plane, eps2d)
+    return Projection(*outputs)
