@@ -1,0 +1,63 @@
+"""Body models (templates in SMPL's frame and T-pose) and the SMPL 24-joint skeleton that poses them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from avatarperfect_cli.body.base import NUM_JOINTS, SMPL_JOINT_NAMES, SMPL_PARENTS, BodyTemplate
+from avatarperfect_cli.body.skeleton import (
+    axis_angle_to_matrix,
+    blend_transforms,
+    forward_kinematics,
+    matrix_to_quaternion,
+    quaternion_to_matrix,
+    skin_gaussians,
+    skin_points,
+)
+from avatarperfect_cli.errors import AvatarPerfectError
+
+BODY_MODELS = ("anny", "smpl")
+
+
+def load_body_template(
+    name: str = "anny",
+    *,
+    smpl_model_dir: Path | None = None,
+    phenotype: dict[str, float] | None = None,
+    cache_dir: Path | None = None,
+    gender: str = "neutral",
+    betas: list[float] | None = None,
+) -> BodyTemplate:
+    """The canonical template of body model `name`.
+
+    anny: shaped by `phenotype` (see `anny_model.PHENOTYPES`), cached under `cache_dir`.
+    smpl: read from the user's `smpl_model_dir`, with `gender` and shape `betas`.
+    """
+    if name == "anny":
+        from avatarperfect_cli.body.anny_model import load_anny_template
+
+        return load_anny_template(phenotype, cache_dir)
+    if name == "smpl":
+        if smpl_model_dir is None:
+            raise AvatarPerfectError("the smpl body model needs the folder of your SMPL model files (--smpl-model-dir)")
+        from avatarperfect_cli.body.smpl_model import load_smpl_template
+
+        return load_smpl_template(smpl_model_dir, gender, betas)
+    raise AvatarPerfectError(f"unknown body model {name!r}; choose one of {', '.join(BODY_MODELS)}")
+
+
+__all__ = [
+    "BODY_MODELS",
+    "NUM_JOINTS",
+    "SMPL_JOINT_NAMES",
+    "SMPL_PARENTS",
+    "BodyTemplate",
+    "axis_angle_to_matrix",
+    "blend_transforms",
+    "forward_kinematics",
+    "load_body_template",
+    "matrix_to_quaternion",
+    "quaternion_to_matrix",
+    "skin_gaussians",
+    "skin_points",
+]

@@ -4,7 +4,8 @@ from avatarperfect_cli.datasets.people_snapshot import (
     FrameRange,
     VideoDataset,
     load_people_snapshot,
+    read_dataset_camera,
     write_people_snapshot,
 )
 
-__all__ = ["FrameRange", "VideoDataset", "load_people_snapshot", "write_people_snapshot"]
+__all__ = ["FrameRange", "VideoDataset", "load_people_snapshot", "read_dataset_camera", "write_people_snapshot"]

@@ -70,6 +70,18 @@ class FrameRange:
     def __str__(self) -> str:
         return f"{self.start}..{self.end} step {self.step}"
 
+    @classmethod
+    def parse(cls, text: str) -> FrameRange:
+        """'START:END' or 'START:END:STEP' (END inclusive); ValueError with a readable message."""
+        parts = text.split(":")
+        try:
+            numbers = [int(part) for part in parts]
+        except ValueError:
+            numbers = []
+        if len(numbers) not in (2, 3):
+            raise ValueError(f"frame range '{text}' is not START:END or START:END:STEP")
+        return cls(*numbers)
+
 
 @dataclass
 class VideoDataset:
@@ -242,6 +254,11 @@ def write_people_snapshot(
 
 
 # ----------------------------------------------------------------------------------------------- reading
+
+
+def read_dataset_camera(root: Path) -> Camera:
+    """The camera of a People-Snapshot folder (its cameras.npz) at the images' native size."""
+    return _read_camera(Path(root) / "cameras.npz")
 
 
 def _read_camera(path: Path) -> Camera:

@@ -1,0 +1,104 @@
+"""The `train-initial` stage: fit the first avatar from a monocular video into a new workspace."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from rich.console import Console
+
+from avatarperfect_cli.avatar.model import Avatar
+from avatarperfect_cli.body import BodyTemplate, load_body_template
+from avatarperfect_cli.datasets import FrameRange, VideoDataset, load_people_snapshot, read_dataset_camera
+from avatarperfect_cli.errors import AvatarPerfectError
+from avatarperfect_cli.io.camera_json import camera_to_json
+from avatarperfect_cli.io.workspace import check_new_workspace, new_workspace
+from avatarperfect_cli.training.trainer import TrainConfig, train, video_views
+
+
+@dataclass
+class VideoSettings:
+    """Which part of a People-Snapshot folder to use, at which size.
+
+    frames:     frame range, None for every frame
+    resolution: longest image side in pixels after integer downscaling; None keeps the native size
+    """
+
+    frames: FrameRange | None = None
+    resolution: int | None = None
+
+    def downscale(self, root: Path) -> int:
+        if self.resolution is None:
+            return 1
+        camera = read_dataset_camera(root)
+        return max(1, round(max(camera.width, camera.height) / self.resolution))
+
+    def load(self, root: Path) -> VideoDataset:
+        return load_people_snapshot(root, self.frames, downscale=self.downscale(root))
+
+
+@dataclass
+class BodySettings:
+    """The body model the avatar's template comes from. A dataset's subject.json takes precedence."""
+
+    name: str = "anny"
+    smpl_model_dir: Path | None = None
+
+    def template(self, video: VideoDataset) -> tuple[BodyTemplate, dict]:
+        """The template and the JSON description stored in the avatar."""
+        subject = video.subject or {}
+        if subject.get("body_model") == "anny":
+            phenotype = subject.get("phenotype")
+            return load_body_template("anny", phenotype=phenotype), {"name": "anny", "phenotype": phenotype}
+        if self.name == "smpl":
+            betas = video.betas.tolist()
+            template = load_body_template("smpl", smpl_model_dir=self.smpl_model_dir, betas=betas)
+            return template, {"name": "smpl", "betas": betas}
+        return load_body_template(self.name), {"name": self.name}
+
+
+@dataclass
+class InitialFit:
+    """Everything `train-initial` needs besides the paths."""
+
+    video: VideoSettings = field(default_factory=VideoSettings)
+    body: BodySettings = field(default_factory=BodySettings)
+    iterations: int = 2000
+    sh_degree: int = 1
+    seed: int = 0
+
+
+def train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool = False, progress: bool = True) -> Path:
+    """Fit an avatar to the video in `dataset` and create `workspace` with avatar/000.ply.
+
+    The workspace appears only when everything succeeded (an interrupted run leaves nothing).
+    Returns the avatar's path.
+    """
+    if fit.iterations < 1:
+        raise AvatarPerfectError(f"--iterations must be at least 1, got {fit.iterations}")
+    check_new_workspace(workspace, force)
+    console = Console(stderr=True, quiet=not progress)
+    video = fit.video.load(dataset)
+    template, body_model = fit.body.template(video)
+    avatar = Avatar.from_template(template, sh_degree=fit.sh_degree, body_model=body_model)
+    console.print(f"fitting {len(avatar):,} Gaussians to {len(video)} frames of {video.camera.width}x{video.camera.height}")
+    config = TrainConfig(iterations=fit.iterations, seed=fit.seed)
+    config.learning_rates.total_steps = fit.iterations
+    start = time.perf_counter()
+    train(avatar, video_views(video), config=config, progress=progress)
+    seconds = time.perf_counter() - start
+    manifest = {
+        "dataset": str(Path(dataset).resolve()),
+        "frames": None if fit.video.frames is None else asdict(fit.video.frames),
+        "downscale": fit.video.downscale(dataset),
+        "camera": camera_to_json(video.camera),
+        "body_model": body_model,
+        "reference_pose": {"body_pose": video.body_pose[0].tolist(), "transl": video.transl[0].tolist()},
+        "iteration": 0,
+        "history": [{"stage": "train-initial", "iterations": fit.iterations, "seed": fit.seed, "seconds": round(seconds, 1), "gaussians": len(avatar)}],
+    }
+    with new_workspace(workspace, manifest, force) as staged:
+        avatar.save(staged.avatar_path(0))
+    console.print(f"wrote {workspace / 'avatar' / '000.ply'} ({len(avatar):,} Gaussians, {seconds:.0f} s)")
+    return workspace / "avatar" / "000.ply"

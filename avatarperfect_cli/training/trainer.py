@@ -1,0 +1,115 @@
+"""The training loop, shared by initial fitting (video only) and refinement (video + painted edits).
+
+Each step draws a view (an edit with probability `edit_probability`, else a video frame), poses the
+avatar, renders it over a random background colour, and takes an Adam step on L1 + λ(1 − SSIM) over
+the subject's bounding box (edits: masked by the edit mask M_k, paper §6.3). Densification lives in
+the strategy object's hooks, so the loop holds no bookkeeping of its own.
+"""
+
+from __future__ import annotations
+
+import random
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import torch
+
+from avatarperfect_cli.avatar.model import Avatar
+from avatarperfect_cli.avatar.rendering import render_avatar
+from avatarperfect_cli.datasets import VideoDataset
+from avatarperfect_cli.render import Camera
+from avatarperfect_cli.training.losses import image_loss, subject_bbox
+from avatarperfect_cli.training.optim import LearningRates, create_optimizers, set_learning_rates
+from avatarperfect_cli.training.progress import TrainingProgress
+from avatarperfect_cli.training.strategy import DensifyConfig, DensifyStrategy
+
+
+@dataclass
+class TrainingView:
+    """One supervising image.
+
+    image:      (H, W, 3) target colours in [0, 1] (composited on white)
+    foreground: (H, W) bool, where the subject is; elsewhere the target is the background colour
+    body_pose:  (24, 3) SMPL axis-angle, joint 0 = global orientation; transl: (3,) metres
+    camera:     the view's camera
+    loss_mask:  (H, W) bool edit mask M_k, or None to supervise every pixel (video frames)
+    """
+
+    image: torch.Tensor
+    foreground: torch.Tensor
+    body_pose: torch.Tensor
+    transl: torch.Tensor
+    camera: Camera
+    loss_mask: torch.Tensor | None = None
+
+
+@dataclass
+class TrainConfig:
+    """Settings of one training run (GART's defaults for people; DESIGN.md "Avatar fitting")."""
+
+    iterations: int = 2000
+    seed: int = 0
+    ssim_weight: float = 0.1
+    bbox_margin: int = 20
+    sh_degree_interval: int = 500  # raise the rendered SH degree by one every this many steps
+    edit_probability: float = 0.3
+    learning_rates: LearningRates = field(default_factory=LearningRates)
+    densify: DensifyConfig = field(default_factory=DensifyConfig)
+
+
+def video_views(video: VideoDataset) -> list[TrainingView]:
+    """One TrainingView per frame of a loaded video (no loss mask: every pixel supervises)."""
+    return [
+        TrainingView(video.images[t], video.masks[t], video.body_pose[t], video.transl[t], video.camera)
+        for t in range(len(video))
+    ]
+
+
+def _supervised_region(view: TrainingView, margin: int) -> tuple[slice, slice]:
+    return subject_bbox(view.foreground if view.loss_mask is None else view.loss_mask, margin)
+
+
+def train(
+    avatar: Avatar,
+    video: Sequence[TrainingView],
+    edits: Sequence[TrainingView] = (),
+    config: TrainConfig | None = None,
+    progress: bool = True,
+) -> Avatar:
+    """Optimise `avatar` in place on the video frames and edits; returns it."""
+    config = config or TrainConfig()
+    if not video:
+        raise ValueError("training needs at least one video frame")
+    torch.manual_seed(config.seed)
+    chooser = random.Random(config.seed)
+    rates = config.learning_rates
+    optimizers = create_optimizers(avatar.params, rates)
+    strategy = DensifyStrategy(config.densify, seed=config.seed)
+    state = strategy.initialize_state()
+    regions = [_supervised_region(view, config.bbox_margin) for view in video]
+    edit_regions = [_supervised_region(view, config.bbox_margin) for view in edits]
+    with TrainingProgress(config.iterations, enabled=progress) as bar:
+        for step in range(config.iterations):
+            if step > 0 and step % config.sh_degree_interval == 0:
+                avatar.active_sh_degree = min(avatar.active_sh_degree + 1, avatar.sh_degree)
+            set_learning_rates(optimizers, rates, step)
+            if edits and chooser.random() < config.edit_probability:
+                index = chooser.randrange(len(edits))
+                view, (rows, cols) = edits[index], edit_regions[index]
+            else:
+                index = chooser.randrange(len(video))
+                view, (rows, cols) = video[index], regions[index]
+            background = torch.rand(3)
+            target = torch.where(view.foreground[..., None], view.image, background)
+            out = render_avatar(avatar, view.body_pose, view.transl, view.camera, background)
+            mask = None if view.loss_mask is None else view.loss_mask[rows, cols]
+            loss = image_loss(out.image[rows, cols], target[rows, cols], mask, config.ssim_weight)
+
+            strategy.step_pre_backward(avatar.params, optimizers, state, step, out)
+            loss.backward()
+            for optimizer in optimizers.values():
+                optimizer.step()
+                optimizer.zero_grad(set_to_none=True)
+            strategy.step_post_backward(avatar.params, optimizers, state, step, out)
+            bar.update(loss=loss.item(), image=out.image[rows, cols].detach(), target=target[rows, cols], count=len(avatar))
+    return avatar

@@ -1,0 +1,78 @@
+"""The command line as a user runs it: help, one-line errors, nothing written on failure."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+from typer.testing import CliRunner
+
+from avatarperfect_cli.cli import app
+
+PIPELINE_COMMANDS = ["train-initial", "visibility", "suggest", "render", "apply-edit", "refine", "evaluate"]
+
+
+def test_help_lists_pipeline_and_is_fast():
+    start = time.perf_counter()
+    result = subprocess.run([sys.executable, "-m", "avatarperfect_cli", "--help"], capture_output=True, text=True)
+    elapsed = time.perf_counter() - start
+    assert result.returncode == 0
+    for command in PIPELINE_COMMANDS:
+        assert command in result.stdout
+    assert elapsed < 2.0, f"--help took {elapsed:.2f} s"
+
+
+def test_help_does_not_import_heavy_modules():
+    probe = "import sys; from avatarperfect_cli import cli; print('torch' in sys.modules, 'numba' in sys.modules)"
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert result.stdout.split() == ["False", "False"]
+
+
+def test_bad_ply_is_one_line_error_and_writes_nothing(tmp_path: Path):
+    ply = tmp_path / "broken.ply"
+    ply.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 10\nproperty float x\nend_header\n\x00\x00")
+    camera = tmp_path / "camera.json"
+    camera.write_text('{"K": [[10,0,4],[0,10,4],[0,0,1]], "world_to_camera": [[1,0,0,0],[0,1,0,0],[0,0,1,2],[0,0,0,1]], "width": 8, "height": 8}')
+    output = tmp_path / "out.png"
+    result = CliRunner().invoke(app, ["render", str(ply), "--camera", str(camera), "-o", str(output)])
+    assert result.exit_code == 2
+    message = result.stderr.strip()
+    assert len(message.splitlines()) == 1 and "broken.ply" in message and message.startswith("error:")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["broken.ply", "camera.json"]
+
+
+def test_render_writes_rgb_and_alpha(tmp_path: Path):
+    from avatarperfect_cli.gaussians import Gaussians, rgb_to_sh
+    from avatarperfect_cli.io import read_image, write_camera, write_gaussians
+    from avatarperfect_cli.render import Camera
+
+    n = 50
+    generator = torch.Generator().manual_seed(0)
+    gaussians = Gaussians(
+        means=(torch.rand(n, 3, generator=generator) - 0.5) * 0.5,
+        quats=torch.randn(n, 4, generator=generator),
+        log_scales=torch.full((n, 3), -3.0),
+        opacity_logits=torch.full((n,), 3.0),
+        sh=rgb_to_sh(torch.tensor([1.0, 0.0, 0.0])).expand(n, 1, 3).clone(),
+    )
+    write_gaussians(tmp_path / "g.ply", gaussians)
+    view = torch.eye(4)
+    view[2, 3] = 2.0
+    write_camera(tmp_path / "c.json", Camera(torch.tensor([[40.0, 0, 16], [0, 40, 12], [0, 0, 1]]), view, 32, 24))
+    result = CliRunner().invoke(app, ["render", str(tmp_path / "g.ply"), "-c", str(tmp_path / "c.json"), "-o", str(tmp_path / "r.png")])
+    assert result.exit_code == 0, result.output
+    rgb = read_image(tmp_path / "r.png")
+    alpha = read_image(tmp_path / "r_alpha.png", mode="L")
+    assert rgb.shape == (24, 32, 3) and alpha.shape == (24, 32, 1)
+    assert (alpha > 0.99).any() and (alpha == 0).any()
+    # Red Gaussians composited over white: rgb = alpha * red + (1 - alpha) * white, to 8-bit rounding.
+    expected = alpha * torch.tensor([1.0, 0.0, 0.0]) + (1 - alpha) * torch.ones(3)
+    assert (rgb - expected).abs().max() <= 1.5 / 255
+
+
+def test_bad_background_is_rejected(tmp_path: Path):
+    result = CliRunner().invoke(app, ["render", "x.ply", "-c", "c.json", "-o", str(tmp_path / "o.png"), "--background", "mauve"])
+    assert result.exit_code == 2 and "background" in result.stderr
