@@ -1,0 +1,1 @@
+"""Building blocks of avatar training: losses, metrics, optimizers, densification, the loop."""
