@@ -33,6 +33,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         height: int,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         arrays = [_array(t) for t in (means2d, conics, opacities, features, background)]
+        arrays.append(kernels.gaussian_spans(arrays[1], arrays[2], _array(drawn)))
         offsets, tile_gaussians = kernels.bin_gaussians(
             _array(means2d), _array(extents), _array(depths), _array(drawn), width, height, TILE_SIZE
         )
@@ -52,7 +53,7 @@ class _RasterizeToPixels(torch.autograd.Function):
     def backward(  # type: ignore[override]
         ctx: Any, grad_image: torch.Tensor, grad_alpha: torch.Tensor, _grad_visibility: torch.Tensor
     ) -> tuple[torch.Tensor | None, ...]:
-        means2d, _, _, _, background = ctx.arrays
+        means2d, _, _, _, background, _ = ctx.arrays
         records = kernels.rasterize_backward(
             *ctx.arrays, *ctx.layout, ctx.transmittance, ctx.last, _array(grad_image), _array(grad_alpha)
         )

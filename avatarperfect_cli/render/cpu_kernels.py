@@ -30,20 +30,45 @@ TRANSMITTANCE_MIN = 1e-4
 _SPAN_SCALE = 1.01
 _SPAN_PAD = 0.01
 
+# Floating-point licences for the compositing loops: contraction, reassociation and reciprocals, but
+# not the no-NaN/no-Inf assumptions (the alpha tests must stay exact comparisons).
+FASTMATH = {"contract", "reassoc", "arcp", "nsz", "afn"}
+
 # Per-intersection gradient record columns; colour gradients follow.
 G_MEAN_X, G_MEAN_Y, G_CONIC_A, G_CONIC_B, G_CONIC_C, G_OPACITY, G_FEATURES = 0, 1, 2, 3, 4, 5, 6
 
 
+# Columns of `gaussian_spans`: per-Gaussian constants of the ellipse {sigma <= level} that bounds the
+# pixels worth visiting, level = log(opacity * 255) widened by _SPAN_SCALE and _SPAN_PAD.
+S_HALF_HEIGHT, S_INV_A, S_NEG_DET, S_TWO_A_LEVEL = 0, 1, 2, 3
+
+
+@njit(cache=True, parallel=True)
+def gaussian_spans(conics, opacities, drawn):
+    """(N, 4) span constants: half height of the ellipse (pixels), 1/a, b^2 - ac and 2 a level."""
+    spans = np.zeros((conics.shape[0], 4), dtype=conics.dtype)
+    for g in prange(conics.shape[0]):
+        if not drawn[g]:
+            continue
+        a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
+        level = _SPAN_SCALE * math.log(opacities[g] / ALPHA_MIN) + _SPAN_PAD
+        spans[g, S_HALF_HEIGHT] = math.sqrt(2.0 * level * a / (a * c - b * b))
+        spans[g, S_INV_A] = 1.0 / a
+        spans[g, S_NEG_DET] = b * b - a * c
+        spans[g, S_TWO_A_LEVEL] = 2.0 * a * level
+    return spans
+
+
 @njit(cache=True, inline="always")
-def _row_span(mx, my, a, b, c, level, y, x_first, x_last):
-    """Pixel columns [lo, hi] of row y inside {sigma <= level}, clipped to [x_first, x_last]."""
-    dy = my - (y + 0.5)
-    disc = dy * dy * (b * b - a * c) + 2.0 * a * level
+def _row_span(mx, dy, b, span, x_first, x_last):
+    """Pixel columns [lo, hi] of the row at vertical offset dy = my - (y + 0.5) inside the
+    Gaussian's span ellipse, clipped to [x_first, x_last]."""
+    disc = dy * dy * span[S_NEG_DET] + span[S_TWO_A_LEVEL]
     if disc < 0.0:
         return 1, 0
     root = math.sqrt(disc)
-    lo = math.ceil(mx + (b * dy - root) / a - 0.5)
-    hi = math.floor(mx + (b * dy + root) / a - 0.5)
+    lo = math.ceil(mx + (b * dy - root) * span[S_INV_A] - 0.5)
+    hi = math.floor(mx + (b * dy + root) * span[S_INV_A] - 0.5)
     return max(lo, x_first), min(hi, x_last)
 
 
@@ -96,15 +121,16 @@ def tile_schedule(tile_offsets):
     return np.argsort(-np.diff(tile_offsets), kind="mergesort")
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, fastmath=FASTMATH)
 def rasterize_forward(
-    means2d, conics, opacities, features, background, tile_offsets, tile_gaussians, schedule,
+    means2d, conics, opacities, features, background, spans, tile_offsets, tile_gaussians, schedule,
     width, height, tile_size, n_threads,
 ):  # fmt: skip
     """Front-to-back compositing of the binned Gaussians.
 
-    means2d (N, 2), conics (N, 3), opacities (N,), features (N, C), background (C,).
-    Returns image (H, W, C), transmittance (H, W) left after the last Gaussian, last (H, W) int64
+    means2d (N, 2), conics (N, 3), opacities (N,), features (N, C), background (C,),
+    spans (N, 4) from `gaussian_spans`.
+    Returns image (H, W, C), transmittance (H, W) left after the last Gaussian, last (H, W) int32
     index into tile_gaussians of the last Gaussian that contributed (-1: none), and
     intersection_weights (n_intersections,) = sum over the tile's pixels of T * alpha.
     """
@@ -113,13 +139,13 @@ def rasterize_forward(
     tiles_x = (width + tile_size - 1) // tile_size
     image = np.empty((height, width, channels), dtype=dtype)
     transmittance = np.empty((height, width), dtype=dtype)
-    last = np.empty((height, width), dtype=np.int64)
+    last = np.empty((height, width), dtype=np.int32)
     intersection_weights = np.zeros(tile_gaussians.shape[0], dtype=dtype)
     for thread in prange(n_threads):
         pixels = tile_size * tile_size
         tile_T = np.empty(pixels, dtype=dtype)
         tile_color = np.empty((pixels, channels), dtype=dtype)
-        tile_last = np.empty(pixels, dtype=np.int64)
+        tile_last = np.empty(pixels, dtype=np.int32)
         tile_done = np.empty(pixels, dtype=np.bool_)
         for k in range(thread, schedule.shape[0], n_threads):
             t = schedule[k]
@@ -139,14 +165,13 @@ def rasterize_forward(
                 mx, my = means2d[g, 0], means2d[g, 1]
                 a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
                 opacity = opacities[g]
-                level = _SPAN_SCALE * math.log(opacity / ALPHA_MIN) + _SPAN_PAD
-                half_height = math.sqrt(2.0 * level * a / (a * c - b * b))
-                row_first = max(math.ceil(my - half_height - 0.5), y0)
-                row_last = min(math.floor(my + half_height - 0.5), y1)
+                span = spans[g]
+                row_first = max(math.ceil(my - span[S_HALF_HEIGHT] - 0.5), y0)
+                row_last = min(math.floor(my + span[S_HALF_HEIGHT] - 0.5), y1)
                 weight_sum = 0.0
                 for y in range(row_first, row_last + 1):
-                    lo, hi = _row_span(mx, my, a, b, c, level, y, x0, x1)
                     dy = my - (y + 0.5)
+                    lo, hi = _row_span(mx, dy, b, span, x0, x1)
                     for x in range(lo, hi + 1):
                         p = (y - y0) * tile_size + (x - x0)
                         if tile_done[p]:
@@ -178,9 +203,9 @@ def rasterize_forward(
     return image, transmittance, last, intersection_weights
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, fastmath=FASTMATH)
 def rasterize_backward(
-    means2d, conics, opacities, features, background, tile_offsets, tile_gaussians, schedule,
+    means2d, conics, opacities, features, background, spans, tile_offsets, tile_gaussians, schedule,
     width, height, tile_size, n_threads, transmittance, last, grad_image, grad_alpha,
 ):  # fmt: skip
     """Gradients of a loss through `rasterize_forward`, back to front, per intersection.
@@ -198,10 +223,12 @@ def rasterize_backward(
         tile_T = np.empty(pixels, dtype=dtype)
         tile_final_T = np.empty(pixels, dtype=dtype)
         tile_behind = np.empty((pixels, channels), dtype=dtype)
-        tile_last = np.empty(pixels, dtype=np.int64)
+        tile_last = np.empty(pixels, dtype=np.int32)
         grad_color = np.empty(channels, dtype=dtype)
         for k in range(thread, schedule.shape[0], n_threads):
             t = schedule[k]
+            if tile_offsets[t] == tile_offsets[t + 1]:
+                break  # the schedule is sorted by cost: only empty tiles remain
             x0 = (t % tiles_x) * tile_size
             y0 = (t // tiles_x) * tile_size
             x1 = min(x0 + tile_size, width) - 1
@@ -222,10 +249,9 @@ def rasterize_backward(
                 mx, my = means2d[g, 0], means2d[g, 1]
                 a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
                 opacity = opacities[g]
-                level = _SPAN_SCALE * math.log(opacity / ALPHA_MIN) + _SPAN_PAD
-                half_height = math.sqrt(2.0 * level * a / (a * c - b * b))
-                row_first = max(math.ceil(my - half_height - 0.5), y0)
-                row_last = min(math.floor(my + half_height - 0.5), y1)
+                span = spans[g]
+                row_first = max(math.ceil(my - span[S_HALF_HEIGHT] - 0.5), y0)
+                row_last = min(math.floor(my + span[S_HALF_HEIGHT] - 0.5), y1)
                 g_mx = 0.0
                 g_my = 0.0
                 g_a = 0.0
@@ -234,8 +260,8 @@ def rasterize_backward(
                 g_opacity = 0.0
                 grad_color[:] = 0.0
                 for y in range(row_first, row_last + 1):
-                    lo, hi = _row_span(mx, my, a, b, c, level, y, x0, x1)
                     dy = my - (y + 0.5)
+                    lo, hi = _row_span(mx, dy, b, span, x0, x1)
                     for x in range(lo, hi + 1):
                         p = (y - y0) * tile_size + (x - x0)
                         if j > tile_last[p]:
