@@ -5,7 +5,7 @@
     ws/visibility/000.npy    accumulated per-Gaussian visibility
     ws/suggest/001/          suggested pose.json, render.png, guide.png
     ws/edits/001/            the user's edited.png and the derived mask.png
-    ws/eval/000/             metrics.json and comparison images
+    ws/eval/000/test/        metrics.json and comparison image, per evaluated video
 
 A new workspace is assembled in a hidden sibling folder and renamed into place, so an interrupted
 train-initial leaves nothing behind; later stages write each file atomically.

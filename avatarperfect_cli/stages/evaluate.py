@@ -43,7 +43,8 @@ def evaluate(
 ) -> dict:
     """Evaluate avatar `iteration` (default: the latest) on `test_dataset`, at the training resolution.
 
-    Writes ws/eval/NNN/metrics.json (per frame and mean) and comparison.png; returns the metrics.
+    Writes ws/eval/NNN/<test folder name>/metrics.json (per frame and mean) and comparison.png;
+    returns the metrics.
     """
     workspace = open_workspace(workspace_root)
     avatar = Avatar.load(workspace.require_avatar(iteration))
@@ -75,11 +76,11 @@ def evaluate(
         "mean": mean,
         "per_frame": per_frame,
     }
-    out_dir = workspace.eval_dir(iteration)
+    out_dir = workspace.eval_dir(iteration) / Path(test_dataset).resolve().name
     atomic_write_text(out_dir / "metrics.json", json.dumps(result, indent=2) + "\n")
     write_image(out_dir / "comparison.png", comparison_grid(grid_rows))
     if progress:
-        table = Table(title=f"avatar {result['iteration']:03d} on {len(per_frame)} held-out frames")
+        table = Table(title=f"avatar {result['iteration']:03d} on {len(per_frame)} frames of {out_dir.name}")
         for name in ("IoU", "PSNR (dB)", "SSIM"):
             table.add_column(name, justify="right")
         table.add_row(f"{mean['iou']:.4f}", f"{mean['psnr']:.2f}", f"{mean['ssim']:.4f}")

@@ -63,11 +63,11 @@ def test_bad_dataset_is_one_line(tmp_path: Path):
 def test_evaluate_writes_metrics_and_grid(workspace: Path):
     result = invoke("evaluate", workspace, "--test", SAMPLE / "test", "--frames", "0:19:5")
     assert result.exit_code == 0, result.output
-    metrics = json.loads((workspace / "eval" / "000" / "metrics.json").read_text())
+    metrics = json.loads((workspace / "eval" / "000" / "test" / "metrics.json").read_text())
     assert metrics["frames"] == 4 and len(metrics["per_frame"]) == 4
     # 40 steps at 64² already give a recognisable silhouette.
     assert 0.5 < metrics["mean"]["iou"] <= 1 and 10 < metrics["mean"]["psnr"] < 60 and 0 < metrics["mean"]["ssim"] <= 1
-    grid = read_image(workspace / "eval" / "000" / "comparison.png")
+    grid = read_image(workspace / "eval" / "000" / "test" / "comparison.png")
     assert grid.shape[1] == 3 * 64
 
 
@@ -91,3 +91,9 @@ def test_render_motion_turntable_and_pose(workspace: Path, tmp_path: Path):
 def test_render_needs_a_form(workspace: Path, tmp_path: Path):
     result = invoke("render", workspace, "-o", tmp_path / "x.png")
     assert result.exit_code == 2 and "--pose" in result.stderr
+
+
+def test_same_seed_same_ply(workspace: Path, tmp_path: Path):
+    again = tmp_path / "again"
+    assert invoke("train-initial", SAMPLE / "train", again, *TRAIN_ARGS).exit_code == 0
+    assert (again / "avatar" / "000.ply").read_bytes() == (workspace / "avatar" / "000.ply").read_bytes()
