@@ -34,9 +34,12 @@ class _RasterizeToPixels(torch.autograd.Function):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         arrays = [_array(t) for t in (means2d, conics, opacities, features, background)]
         arrays.append(kernels.gaussian_spans(arrays[1], arrays[2], _array(drawn)))
+        depth_array = _array(depths)
+        depth_keys = depth_array.view(np.uint32 if depth_array.itemsize == 4 else np.uint64)
         offsets, tile_gaussians = kernels.bin_gaussians(
-            _array(means2d), _array(extents), _array(depths), _array(drawn), width, height, TILE_SIZE
-        )
+            _array(means2d), _array(extents), depth_keys, 8 * depth_array.itemsize, _array(drawn),
+            width, height, TILE_SIZE,
+        )  # fmt: skip
         schedule = kernels.tile_schedule(offsets)
         layout = (offsets, tile_gaussians, schedule, width, height, TILE_SIZE, numba.get_num_threads())
         image, transmittance, last, weights = kernels.rasterize_forward(*arrays, *layout)
@@ -58,9 +61,11 @@ class _RasterizeToPixels(torch.autograd.Function):
             *ctx.arrays, *ctx.layout, ctx.transmittance, ctx.last, _array(grad_image), _array(grad_alpha)
         )
         grads = torch.from_numpy(kernels.sum_per_gaussian(records, ctx.layout[1], means2d.shape[0]))
-        grad_background = torch.from_numpy(
-            np.einsum("hw,hwc->c", ctx.transmittance, _array(grad_image)).astype(background.dtype)
-        )
+        grad_background = None
+        if ctx.needs_input_grad[4]:
+            grad_background = torch.from_numpy(
+                np.einsum("hw,hwc->c", ctx.transmittance, _array(grad_image)).astype(background.dtype)
+            )
         return (
             grads[:, kernels.G_MEAN_X : kernels.G_MEAN_Y + 1],
             grads[:, kernels.G_CONIC_A : kernels.G_CONIC_C + 1],

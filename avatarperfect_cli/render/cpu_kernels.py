@@ -72,12 +72,40 @@ def _row_span(mx, dy, b, span, x_first, x_last):
     return max(lo, x_first), min(hi, x_last)
 
 
+RADIX_BITS = 11
+
+
 @njit(cache=True)
-def bin_gaussians(means2d, extents, depths, drawn, width, height, tile_size):
+def depth_order(depth_keys, drawn, key_bits):
+    """Drawn Gaussians' indices by increasing depth, ties kept in index order (stable LSD radix sort).
+
+    depth_keys: (N,) the depths' IEEE bit patterns as unsigned integers of `key_bits` bits; for the
+    positive depths of drawn Gaussians they order exactly like the depths.
+    """
+    order = np.nonzero(drawn)[0]
+    scratch = np.empty_like(order)
+    counts = np.empty((1 << RADIX_BITS) + 1, dtype=np.int64)
+    for shift in range(0, key_bits, RADIX_BITS):
+        counts[:] = 0
+        for i in range(order.shape[0]):
+            counts[((depth_keys[order[i]] >> shift) & ((1 << RADIX_BITS) - 1)) + 1] += 1
+        if counts.max() == order.shape[0]:
+            continue  # every key has the same digit here
+        counts = np.cumsum(counts)
+        for i in range(order.shape[0]):
+            digit = (depth_keys[order[i]] >> shift) & ((1 << RADIX_BITS) - 1)
+            scratch[counts[digit]] = order[i]
+            counts[digit] += 1
+        order, scratch = scratch, order
+    return order
+
+
+@njit(cache=True)
+def bin_gaussians(means2d, extents, depth_keys, key_bits, drawn, width, height, tile_size):
     """Assign Gaussians to the tiles their ellipse bounding box touches, depth-sorted per tile.
 
     means2d: (N, 2) pixels; extents: (N, 2) half-widths of the bounding box, pixels;
-    depths: (N,) camera z, metres; drawn: (N,) bool.
+    depth_keys, key_bits: camera z as for `depth_order`; drawn: (N,) bool.
     Returns tile_offsets (n_tiles + 1,) int64 and tile_gaussians (n_intersections,) int32, where the
     Gaussians of tile t, nearest first (stable for equal depths), are
     tile_gaussians[tile_offsets[t]:tile_offsets[t + 1]].
@@ -106,7 +134,7 @@ def bin_gaussians(means2d, extents, depths, drawn, width, height, tile_size):
     offsets = np.cumsum(counts)
     cursor = offsets[:-1].copy()
     tile_gaussians = np.empty(offsets[-1], dtype=np.int32)
-    for g in np.argsort(depths, kind="mergesort"):
+    for g in depth_order(depth_keys, drawn, key_bits):
         for ty in range(rects[g, 2], rects[g, 3]):
             for tx in range(rects[g, 0], rects[g, 1]):
                 t = ty * tiles_x + tx
