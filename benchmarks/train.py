@@ -21,7 +21,7 @@ import torch
 
 from avatarperfect_cli.avatar.model import Avatar
 from avatarperfect_cli.body import load_body_template
-from avatarperfect_cli.datasets import FrameRange, load_people_snapshot
+from avatarperfect_cli.datasets import load_people_snapshot
 from avatarperfect_cli.training.strategy import DensifyConfig
 from avatarperfect_cli.training.trainer import TrainConfig, train, video_views
 
@@ -40,7 +40,7 @@ def doubled(avatar: Avatar) -> Avatar:
 
 def step_seconds(sample: Path, steps: int) -> tuple[float, int]:
     """Seconds per training step (the difference of a long and a short run, so start-up cancels)."""
-    video = load_people_snapshot(sample, FrameRange(0, 10_000, 4))
+    video = load_people_snapshot(sample)
     template = load_body_template("anny", phenotype=video.subject["phenotype"])
     views = video_views(video)
     runs = {}

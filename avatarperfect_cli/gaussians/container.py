@@ -98,15 +98,3 @@ class Gaussians:
             sh=move(self.sh),
             extras={k: move(v) for k, v in self.extras.items()},
         )
-
-    def subset(self, index: torch.Tensor) -> Gaussians:
-        """The Gaussians selected by a boolean mask or an index tensor over N."""
-        return replace(
-            self,
-            means=self.means[index],
-            quats=self.quats[index],
-            log_scales=self.log_scales[index],
-            opacity_logits=self.opacity_logits[index],
-            sh=self.sh[index],
-            extras={k: v[index] for k, v in self.extras.items()},
-        )

@@ -46,15 +46,6 @@ class Workspace:
     def avatar_path(self, iteration: int | None = None) -> Path:
         return self.root / "avatar" / f"{self._iteration(iteration):03d}.ply"
 
-    def visibility_path(self, iteration: int | None = None) -> Path:
-        return self.root / "visibility" / f"{self._iteration(iteration):03d}.npy"
-
-    def suggest_dir(self, edit_index: int) -> Path:
-        return self.root / "suggest" / f"{edit_index:03d}"
-
-    def edits_dir(self, edit_index: int) -> Path:
-        return self.root / "edits" / f"{edit_index:03d}"
-
     def eval_dir(self, iteration: int | None = None) -> Path:
         return self.root / "eval" / f"{self._iteration(iteration):03d}"
 
