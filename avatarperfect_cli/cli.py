@@ -86,13 +86,16 @@ def train_initial(
     smpl_model_dir: Optional[Path] = typer.Option(None, help="Folder with your licensed SMPL model files."),
     sh_degree: int = typer.Option(1, min=0, max=3, help="Spherical-harmonics degree of the colours."),
     seed: int = typer.Option(0, help="Random seed."),
+    refine_poses: bool = typer.Option(False, "--refine-poses", help="Also refine each frame's SMPL pose (real videos)."),
     force: bool = typer.Option(False, "--force", help="Replace an existing workspace."),
 ) -> None:
     """Fit the first avatar from a monocular video."""
     from avatarperfect_cli.stages.train_initial import BodySettings, InitialFit, VideoSettings
     from avatarperfect_cli.stages.train_initial import train_initial as run
 
-    fit = InitialFit(VideoSettings(_frame_range(frames), resolution), BodySettings(body_model, smpl_model_dir), iterations, sh_degree, seed)
+    fit = InitialFit(
+        VideoSettings(_frame_range(frames), resolution), BodySettings(body_model, smpl_model_dir), iterations, sh_degree, seed, refine_poses
+    )
     run(dataset, workspace, fit, force)
 
 

@@ -6,15 +6,21 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import numpy as np
 from rich.console import Console
 
 from avatarperfect_cli.avatar.model import Avatar
 from avatarperfect_cli.body import BodyTemplate, load_body_template
 from avatarperfect_cli.datasets import FrameRange, VideoDataset, load_people_snapshot, read_dataset_camera
 from avatarperfect_cli.errors import AvatarPerfectError
+from avatarperfect_cli.io.atomic import atomic_path
 from avatarperfect_cli.io.camera_json import camera_to_json
 from avatarperfect_cli.io.workspace import check_new_workspace, new_workspace
+from avatarperfect_cli.training.pose_refinement import PoseRefiner
 from avatarperfect_cli.training.trainer import TrainConfig, train, video_views
+
+# With --refine-poses: the video's refined poses (frame_ids (T,), body_pose (T, 24, 3), transl (T, 3)).
+REFINED_POSES = "poses.npz"
 
 
 @dataclass
@@ -67,6 +73,7 @@ class InitialFit:
     iterations: int = 2000
     sh_degree: int = 1
     seed: int = 0
+    refine_poses: bool = False  # per-frame pose refinement, for real videos with approximate poses
 
 
 def train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool = False, progress: bool = True) -> Path:
@@ -85,8 +92,9 @@ def train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool =
     console.print(f"fitting {len(avatar):,} Gaussians to {len(video)} frames of {video.camera.width}x{video.camera.height}")
     config = TrainConfig(iterations=fit.iterations, seed=fit.seed)
     config.learning_rates.total_steps = fit.iterations
+    refiner = PoseRefiner(len(video)) if fit.refine_poses else None
     start = time.perf_counter()
-    train(avatar, video_views(video), config=config, progress=progress)
+    train(avatar, video_views(video), config=config, progress=progress, pose_refiner=refiner)
     seconds = time.perf_counter() - start
     manifest = {
         "dataset": str(Path(dataset).resolve()),
@@ -98,7 +106,13 @@ def train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool =
         "iteration": 0,
         "history": [{"stage": "train-initial", "iterations": fit.iterations, "seed": fit.seed, "seconds": round(seconds, 1), "gaussians": len(avatar)}],
     }
+    if refiner is not None:
+        manifest["refined_poses"] = REFINED_POSES
     with new_workspace(workspace, manifest, force) as staged:
         avatar.save(staged.avatar_path(0))
+        if refiner is not None:
+            body_pose, transl = refiner.refined(video.body_pose, video.transl)
+            with atomic_path(staged.root / REFINED_POSES) as temporary, open(temporary, "wb") as handle:
+                np.savez(handle, frame_ids=video.frame_ids.numpy(), body_pose=body_pose.numpy(), transl=transl.numpy())
     console.print(f"wrote {workspace / 'avatar' / '000.ply'} ({len(avatar):,} Gaussians, {seconds:.0f} s)")
     return workspace / "avatar" / "000.ply"

@@ -20,6 +20,7 @@ from avatarperfect_cli.datasets import VideoDataset
 from avatarperfect_cli.render import Camera
 from avatarperfect_cli.training.losses import image_loss, subject_bbox
 from avatarperfect_cli.training.optim import LearningRates, create_optimizers, set_learning_rates
+from avatarperfect_cli.training.pose_refinement import PoseRefiner
 from avatarperfect_cli.training.progress import TrainingProgress
 from avatarperfect_cli.training.strategy import DensifyConfig, DensifyStrategy
 
@@ -75,8 +76,13 @@ def train(
     edits: Sequence[TrainingView] = (),
     config: TrainConfig | None = None,
     progress: bool = True,
+    pose_refiner: PoseRefiner | None = None,
 ) -> Avatar:
-    """Optimise `avatar` in place on the video frames and edits; returns it."""
+    """Optimise `avatar` in place on the video frames and edits; returns it.
+
+    pose_refiner: optional per-frame pose offsets of the video (one per entry of `video`), optimised
+    along with the avatar; read the result with `pose_refiner.refined(...)`.
+    """
     config = config or TrainConfig()
     if not video:
         raise ValueError("training needs at least one video frame")
@@ -96,12 +102,16 @@ def train(
             if edits and chooser.random() < config.edit_probability:
                 index = chooser.randrange(len(edits))
                 view, (rows, cols) = edits[index], edit_regions[index]
+                body_pose, transl = view.body_pose, view.transl
             else:
                 index = chooser.randrange(len(video))
                 view, (rows, cols) = video[index], regions[index]
+                body_pose, transl = view.body_pose, view.transl
+                if pose_refiner is not None:
+                    body_pose, transl = pose_refiner.pose(index, body_pose, transl, step)
             background = torch.rand(3)
             target = torch.where(view.foreground[..., None], view.image, background)
-            out = render_avatar(avatar, view.body_pose, view.transl, view.camera, background)
+            out = render_avatar(avatar, body_pose, transl, view.camera, background)
             mask = None if view.loss_mask is None else view.loss_mask[rows, cols]
             loss = image_loss(out.image[rows, cols], target[rows, cols], mask, config.ssim_weight)
 
@@ -110,6 +120,8 @@ def train(
             for optimizer in optimizers.values():
                 optimizer.step()
                 optimizer.zero_grad(set_to_none=True)
+            if pose_refiner is not None:
+                pose_refiner.step(step)
             strategy.step_post_backward(avatar.params, optimizers, state, step, out)
             bar.update(loss=loss.item(), image=out.image[rows, cols].detach(), target=target[rows, cols], count=len(avatar))
     return avatar

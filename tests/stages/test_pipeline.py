@@ -97,3 +97,19 @@ def test_same_seed_same_ply(workspace: Path, tmp_path: Path):
     again = tmp_path / "again"
     assert invoke("train-initial", SAMPLE / "train", again, *TRAIN_ARGS).exit_code == 0
     assert (again / "avatar" / "000.ply").read_bytes() == (workspace / "avatar" / "000.ply").read_bytes()
+
+
+def test_refine_poses_stores_the_video_poses(tmp_path: Path):
+    import numpy as np
+
+    from avatarperfect_cli.datasets import FrameRange, load_people_snapshot
+
+    result = invoke("train-initial", SAMPLE / "train", tmp_path / "ws", *TRAIN_ARGS[:2], "--resolution", "32", "--frames", "0:59:20", "--refine-poses")
+    assert result.exit_code == 0, result.output
+    assert open_workspace(tmp_path / "ws").manifest["refined_poses"] == "poses.npz"
+    video = load_people_snapshot(SAMPLE / "train", FrameRange(0, 59, 20))
+    with np.load(tmp_path / "ws" / "poses.npz") as poses:
+        np.testing.assert_array_equal(poses["frame_ids"], [0, 20, 40])
+        # 40 steps stay before the refinement's start step (500): the poses are the video's own.
+        np.testing.assert_array_equal(poses["body_pose"], video.body_pose.numpy())
+        assert poses["transl"].shape == (3, 3)
