@@ -38,6 +38,7 @@ import torch
 from PIL import Image
 
 from avatarperfect_cli.errors import InputFileError
+from avatarperfect_cli.io.atomic import staging_dir
 from avatarperfect_cli.render.camera import Camera
 
 NUM_BETAS = 10
@@ -225,8 +226,7 @@ def write_people_snapshot(
     root = Path(root)
     if root.exists() and not _is_replaceable(root):
         raise InputFileError(root, "exists and is not a People-Snapshot dataset; refusing to replace it")
-    root.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{root.name}.", suffix=".tmp", dir=root.parent))
+    staging = staging_dir(root)
     try:
         (staging / "images").mkdir()
         (staging / "masks").mkdir()

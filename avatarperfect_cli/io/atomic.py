@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import secrets
+import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -38,3 +39,16 @@ def atomic_write_text(path: Path | str, text: str, encoding: str = "utf-8") -> N
     """Write `text` to `path` atomically."""
     with atomic_path(path) as temporary:
         temporary.write_text(text, encoding=encoding)
+
+
+def staging_dir(target: Path) -> Path:
+    """A new, empty hidden folder beside `target`, meant to be renamed onto it once complete.
+
+    It gets the permissions a plain mkdir would give (tempfile's are owner-only).
+    """
+    target.parent.mkdir(parents=True, exist_ok=True)
+    path = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    path.chmod(0o777 & ~umask)
+    return path

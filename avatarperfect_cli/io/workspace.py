@@ -16,7 +16,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -24,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
-from avatarperfect_cli.io.atomic import atomic_write_text
+from avatarperfect_cli.io.atomic import atomic_write_text, staging_dir
 
 MANIFEST = "workspace.json"
 WORKSPACE_FORMAT = "avatarperfect.workspace"
@@ -99,8 +98,7 @@ def new_workspace(root: Path, manifest: dict[str, Any], force: bool = False) -> 
     Workspace (whose root is the staging folder) and must not keep it after the block.
     """
     check_new_workspace(root, force)
-    root.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{root.name}.tmp-", dir=root.parent))
+    staging = staging_dir(root)
     try:
         workspace = Workspace(staging, {"format": WORKSPACE_FORMAT, "version": WORKSPACE_VERSION, **manifest})
         yield workspace

@@ -60,6 +60,13 @@ def gaussian_spans(conics, opacities, drawn):
 
 
 @njit(cache=True, inline="always")
+def _row_range(my, span, y_first, y_last):
+    """Pixel rows [first, last] of the Gaussian's span ellipse, clipped to [y_first, y_last]."""
+    half_height = span[S_HALF_HEIGHT]
+    return max(math.ceil(my - half_height - 0.5), y_first), min(math.floor(my + half_height - 0.5), y_last)
+
+
+@njit(cache=True, inline="always")
 def _row_span(mx, dy, b, span, x_first, x_last):
     """Pixel columns [lo, hi] of the row at vertical offset dy = my - (y + 0.5) inside the
     Gaussian's span ellipse, clipped to [x_first, x_last]."""
@@ -194,8 +201,7 @@ def rasterize_forward(
                 a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
                 opacity = opacities[g]
                 span = spans[g]
-                row_first = max(math.ceil(my - span[S_HALF_HEIGHT] - 0.5), y0)
-                row_last = min(math.floor(my + span[S_HALF_HEIGHT] - 0.5), y1)
+                row_first, row_last = _row_range(my, span, y0, y1)
                 weight_sum = 0.0
                 for y in range(row_first, row_last + 1):
                     dy = my - (y + 0.5)
@@ -278,8 +284,7 @@ def rasterize_backward(
                 a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
                 opacity = opacities[g]
                 span = spans[g]
-                row_first = max(math.ceil(my - span[S_HALF_HEIGHT] - 0.5), y0)
-                row_last = min(math.floor(my + span[S_HALF_HEIGHT] - 0.5), y1)
+                row_first, row_last = _row_range(my, span, y0, y1)
                 g_mx = 0.0
                 g_my = 0.0
                 g_a = 0.0

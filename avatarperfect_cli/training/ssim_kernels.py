@@ -115,6 +115,12 @@ def _column(ring, taps, i, height, out):
 
 
 @njit(inline="always")
+def _ssim_terms(mx, my, sxx, syy, sxy, c1, c2):
+    """SSIM = a1 a2 / (b1 b2) from the local means and (uncentred) second moments."""
+    return 2.0 * mx * my + c1, 2.0 * (sxy - mx * my) + c2, mx * mx + my * my + c1, sxx - mx * mx + syy - my * my + c2
+
+
+@njit(inline="always")
 def _ssim_row(moments, c1, c2, first, last, derivatives, i):
     """Sum of SSIM over columns [first, last) of one row of filtered moments (5, L).
 
@@ -126,19 +132,13 @@ def _ssim_row(moments, c1, c2, first, last, derivatives, i):
     if derivatives.shape[0] == 0:
         for j in range(last - first):
             mx, my = mxs[j], mys[j]
-            a1 = 2.0 * mx * my + c1
-            a2 = 2.0 * (sxys[j] - mx * my) + c2
-            b1 = mx * mx + my * my + c1
-            b2 = sxxs[j] - mx * mx + syys[j] - my * my + c2
+            a1, a2, b1, b2 = _ssim_terms(mx, my, sxxs[j], syys[j], sxys[j], c1, c2)
             total += a1 * a2 / (b1 * b2)
         return total
     d_sq, d_sxy, d_mx = derivatives[0, i, first:last], derivatives[1, i, first:last], derivatives[2, i, first:last]
     for j in range(last - first):
         mx, my = mxs[j], mys[j]
-        a1 = 2.0 * mx * my + c1
-        a2 = 2.0 * (sxys[j] - mx * my) + c2
-        b1 = mx * mx + my * my + c1
-        b2 = sxxs[j] - mx * mx + syys[j] - my * my + c2
+        a1, a2, b1, b2 = _ssim_terms(mx, my, sxxs[j], syys[j], sxys[j], c1, c2)
         inv_b = 1.0 / (b1 * b2)
         value = a1 * a2 * inv_b
         total += value
@@ -149,10 +149,7 @@ def _ssim_row(moments, c1, c2, first, last, derivatives, i):
         d_my = derivatives[3, i, first:last]
         for j in range(last - first):
             mx, my = mxs[j], mys[j]
-            a1 = 2.0 * mx * my + c1
-            a2 = 2.0 * (sxys[j] - mx * my) + c2
-            b1 = mx * mx + my * my + c1
-            b2 = sxxs[j] - mx * mx + syys[j] - my * my + c2
+            a1, a2, b1, b2 = _ssim_terms(mx, my, sxxs[j], syys[j], sxys[j], c1, c2)
             inv_b = 1.0 / (b1 * b2)
             d_my[j] = 2.0 * (mx * (a2 - a1) * inv_b + my * a1 * a2 * inv_b * (1.0 / b2 - 1.0 / b1))
     return total

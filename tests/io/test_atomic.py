@@ -1,8 +1,9 @@
+import os
 from pathlib import Path
 
 import pytest
 
-from avatarperfect_cli.io.atomic import atomic_path, atomic_write_bytes, atomic_write_text
+from avatarperfect_cli.io.atomic import atomic_path, atomic_write_bytes, atomic_write_text, staging_dir
 
 
 def test_success_replaces_target_and_leaves_no_temporary(tmp_path: Path) -> None:
@@ -49,3 +50,11 @@ def test_write_bytes_and_text(tmp_path: Path) -> None:
     assert (tmp_path / "a.bin").read_bytes() == b"\x00\xff"
     assert (tmp_path / "b.txt").read_bytes() == "é".encode()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.bin", "b.txt"]
+
+
+def test_staging_dir_has_ordinary_permissions(tmp_path: Path) -> None:
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    staged = staging_dir(tmp_path / "ws")
+    assert staged.parent == tmp_path and staged.name.startswith(".ws.") and not any(staged.iterdir())
+    assert os.stat(staged).st_mode & 0o777 == os.stat(plain).st_mode & 0o777
