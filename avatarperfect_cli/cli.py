@@ -7,9 +7,12 @@ from __future__ import annotations
 
 import functools
 from pathlib import Path
-from typing import Callable, Optional, TypeVar
+from typing import TYPE_CHECKING, Callable, Optional, TypeVar
 
 import typer
+
+if TYPE_CHECKING:
+    from avatarperfect_cli.datasets import FrameRange
 
 app = typer.Typer(
     help="Repair 3D Gaussian Splatting human avatars by painting 2D images.",
@@ -45,7 +48,7 @@ def _not_implemented(name: str) -> None:
     raise typer.Exit(1)
 
 
-def _frame_range(text: Optional[str]):
+def _frame_range(text: Optional[str]) -> FrameRange | None:
     """'START:END[:STEP]' -> FrameRange, or None."""
     if text is None:
         return None
@@ -79,8 +82,8 @@ def make_sample(
 def train_initial(
     dataset: Path = typer.Argument(..., help="Video in the People-Snapshot layout."),
     workspace: Path = typer.Argument(..., help="Workspace folder to create."),
-    iterations: int = typer.Option(2000, help="Training steps."),
-    resolution: Optional[int] = typer.Option(None, help="Longest image side to train at (integer downscale)."),
+    iterations: int = typer.Option(2000, min=1, help="Training steps."),
+    resolution: Optional[int] = typer.Option(None, min=16, help="Longest image side to train at (integer downscale)."),
     frames: Optional[str] = typer.Option(None, help="Frame range START:END[:STEP], END inclusive."),
     body_model: str = typer.Option("anny", help="anny (built in) or smpl (needs --smpl-model-dir)."),
     smpl_model_dir: Optional[Path] = typer.Option(None, help="Folder with your licensed SMPL model files."),

@@ -83,7 +83,7 @@ def train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool =
     Returns the avatar's path.
     """
     if fit.iterations < 1:
-        raise AvatarPerfectError(f"--iterations must be at least 1, got {fit.iterations}")
+        raise AvatarPerfectError(f"iterations must be at least 1, got {fit.iterations}")
     check_new_workspace(workspace, force)
     console = Console(stderr=True, quiet=not progress)
     video = fit.video.load(dataset)
