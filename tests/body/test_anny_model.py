@@ -104,19 +104,18 @@ def test_phenotypes_shape_the_body(model) -> None:
         full_phenotype({"age": 1.5})
 
 
-def test_cached_template_loads_fast_without_anny(template: BodyTemplate) -> None:
+def test_cached_template_loads_without_anny(template: BodyTemplate) -> None:
+    """Once cached, a template loads from its .npz without importing anny or warp (fast start-up)."""
     again = load_body_template("anny")
     assert torch.equal(again.vertices, template.vertices) and torch.equal(again.weights, template.weights)
     code = (
-        "import sys, time; t = time.perf_counter()\n"
+        "import sys\n"
         "from avatarperfect_cli.body import load_body_template\n"
         "template = load_body_template('anny')\n"
-        "assert 'anny' not in sys.modules and 'warp' not in sys.modules\n"
-        "print(template.vertices.shape[0], time.perf_counter() - t)\n"
+        "print(template.vertices.shape[0], 'anny' in sys.modules, 'warp' in sys.modules)\n"
     )
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    vertices, seconds = result.stdout.split()
-    assert int(vertices) == 13718 and float(seconds) < 5.0
+    assert result.stdout.split() == ["13718", "False", "False"]
 
 
 def test_our_skinning_matches_anny_posing(model, template: BodyTemplate) -> None:
