@@ -17,6 +17,7 @@ from avatarperfect_cli.avatar.rendering import render_avatar
 from avatarperfect_cli.errors import AvatarPerfectError
 from avatarperfect_cli.gaussians import Gaussians
 from avatarperfect_cli.io import atomic_path, read_camera, read_gaussians, read_pose, write_image
+from avatarperfect_cli.io.atomic import staging_dir
 from avatarperfect_cli.io.camera_json import camera_from_json
 from avatarperfect_cli.io.motion import read_motion
 from avatarperfect_cli.io.workspace import open_workspace
@@ -61,6 +62,11 @@ def render_gaussians(
         )  # fmt: skip
 
 
+def _require_png(output: Path) -> None:
+    if output.suffix.lower() != ".png":
+        raise AvatarPerfectError(f"{output}: the output must be a .png file")
+
+
 def default_alpha_path(output: Path) -> Path:
     return output.with_name(f"{output.stem}_alpha.png")
 
@@ -74,8 +80,7 @@ def render_ply(
     device: str = "auto",
 ) -> None:
     """Render a Gaussian PLY with a camera JSON to an RGB PNG and an alpha PNG (both written atomically)."""
-    if output.suffix.lower() != ".png":
-        raise AvatarPerfectError(f"{output}: the output must be a .png file")
+    _require_png(output)
     background_color, torch_device = parse_background(background), resolve_device(device)
     gaussians = read_gaussians(source)
     camera = read_camera(camera_path)
@@ -125,8 +130,7 @@ def _write_frames(output: Path, frames: list[torch.Tensor], fps: float) -> None:
         return
     if output.suffix:
         raise AvatarPerfectError(f"{output}: give an .mp4 file or a folder for the frames")
-    staging = output.with_name(f".{output.name}.tmp")
-    shutil.rmtree(staging, ignore_errors=True)
+    staging = staging_dir(output)
     try:
         for index, frame in enumerate(frames):
             write_image(staging / f"frame_{index:04d}.png", frame.clamp(0, 1))
@@ -157,6 +161,8 @@ def render_avatar_views(
     turntable: that many frames of a camera circling the avatar in the training video's first pose
     """
     background_color = parse_background(background)
+    if pose is not None:
+        _require_png(output)
     avatar, camera, manifest = _avatar_and_camera(source, iteration)
     if camera_path is not None:
         camera = read_camera(camera_path)
