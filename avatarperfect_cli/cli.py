@@ -6,6 +6,7 @@ Heavy modules (torch, numba) are imported inside the commands so that `--help` s
 from __future__ import annotations
 
 import functools
+import signal
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Optional, TypeVar
 
@@ -24,28 +25,43 @@ app = typer.Typer(
 F = TypeVar("F", bound=Callable[..., object])
 
 
+def _raise_interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
+def _is_interrupt(error: BaseException) -> bool:
+    """True for Ctrl-C, also when it surfaced inside a compiled numba kernel as a SystemError."""
+    seen: set[int] = set()
+    current: BaseException | None = error
+    while current is not None and id(current) not in seen:
+        if isinstance(current, KeyboardInterrupt):
+            return True
+        seen.add(id(current))
+        current = current.__cause__ or current.__context__
+    return False
+
+
 def _one_line_errors(command: F) -> F:
-    """Print expected failures (AvatarPerfectError) as one line on stderr and exit with status 2."""
+    """Print expected failures (AvatarPerfectError) as one line on stderr and exit with status 2;
+    Ctrl-C and SIGTERM end with "interrupted" and status 130, after the stage has cleaned up."""
 
     @functools.wraps(command)
     def wrapper(*args: object, **kwargs: object) -> object:
         from avatarperfect_cli.errors import AvatarPerfectError
 
+        signal.signal(signal.SIGTERM, _raise_interrupt)
         try:
             return command(*args, **kwargs)
         except AvatarPerfectError as error:
             typer.echo(f"error: {error}", err=True)
             raise typer.Exit(2) from None
-        except KeyboardInterrupt:
-            typer.echo("interrupted: nothing was written", err=True)
+        except (KeyboardInterrupt, SystemError) as error:
+            if not _is_interrupt(error):
+                raise
+            typer.echo("interrupted: nothing was changed", err=True)
             raise typer.Exit(130) from None
 
     return wrapper  # type: ignore[return-value]
-
-
-def _not_implemented(name: str) -> None:
-    typer.echo(f"error: '{name}' is not implemented yet", err=True)
-    raise typer.Exit(1)
 
 
 def _frame_range(text: Optional[str]) -> FrameRange | None:
@@ -61,6 +77,15 @@ def _frame_range(text: Optional[str]) -> FrameRange | None:
         raise AvatarPerfectError(str(error)) from None
 
 
+def _require_in_range(option: str, value: int | None, low: int, high: int | None = None) -> None:
+    """One-line AvatarPerfectError unless low <= value (<= high); None passes (an unset option)."""
+    from avatarperfect_cli.errors import AvatarPerfectError
+
+    if value is not None and (value < low or (high is not None and value > high)):
+        allowed = f"from {low} to {high}" if high is not None else f"at least {low}"
+        raise AvatarPerfectError(f"{option} must be {allowed}, got {value}")
+
+
 @app.command("make-sample")
 @_one_line_errors
 def make_sample(
@@ -72,8 +97,13 @@ def make_sample(
     test_frames: int = typer.Option(30, help="Frames of the held-out test video."),
 ) -> None:
     """Make the synthetic sample subject (anny body, procedural clothes) in the People-Snapshot layout."""
+    from avatarperfect_cli.io.camera_json import max_image_side
+    from avatarperfect_cli.io.outputs import check_writable_folder
+    from avatarperfect_cli.sample.generate import MIN_RESOLUTION
     from avatarperfect_cli.sample.generate import make_sample as make
 
+    _require_in_range("--resolution", resolution, MIN_RESOLUTION, max_image_side())
+    check_writable_folder(out_dir)
     make(out_dir, preset, resolution, seed, train_frames, test_frames)
 
 
@@ -82,20 +112,26 @@ def make_sample(
 def train_initial(
     dataset: Path = typer.Argument(..., help="Video in the People-Snapshot layout."),
     workspace: Path = typer.Argument(..., help="Workspace folder to create."),
-    iterations: int = typer.Option(2000, min=1, help="Training steps."),
-    resolution: Optional[int] = typer.Option(None, min=16, help="Longest image side to train at (integer downscale)."),
+    iterations: int = typer.Option(2000, help="Training steps (at least 1)."),
+    resolution: Optional[int] = typer.Option(None, help="Longest image side to train at (>= 16; integer downscale)."),
     frames: Optional[str] = typer.Option(None, help="Frame range START:END[:STEP], END inclusive."),
     body_model: str = typer.Option("anny", help="anny (built in) or smpl (needs --smpl-model-dir)."),
     smpl_model_dir: Optional[Path] = typer.Option(None, help="Folder with your licensed SMPL model files."),
-    sh_degree: int = typer.Option(1, min=0, max=3, help="Spherical-harmonics degree of the colours."),
+    sh_degree: int = typer.Option(1, help="Spherical-harmonics degree of the colours (0 to 3)."),
     seed: int = typer.Option(0, help="Random seed."),
     refine_poses: bool = typer.Option(False, "--refine-poses", help="Also refine each frame's SMPL pose (real videos)."),
     force: bool = typer.Option(False, "--force", help="Replace an existing workspace."),
 ) -> None:
     """Fit the first avatar from a monocular video."""
+    from avatarperfect_cli.io.outputs import check_writable_folder
+    from avatarperfect_cli.sample.generate import MIN_RESOLUTION
     from avatarperfect_cli.stages.train_initial import BodySettings, InitialFit, VideoSettings
     from avatarperfect_cli.stages.train_initial import train_initial as run
 
+    _require_in_range("--iterations", iterations, 1)
+    _require_in_range("--resolution", resolution, MIN_RESOLUTION)
+    _require_in_range("--sh-degree", sh_degree, 0, 3)
+    check_writable_folder(workspace)
     fit = InitialFit(
         VideoSettings(_frame_range(frames), resolution), BodySettings(body_model, smpl_model_dir), iterations, sh_degree, seed, refine_poses
     )
@@ -106,7 +142,9 @@ def train_initial(
 @_one_line_errors
 def evaluate(
     workspace: Path = typer.Argument(..., help="Workspace folder."),
-    test: Path = typer.Option(..., "--test", help="Held-out video in the People-Snapshot layout."),
+    test: Path = typer.Option(
+        ..., "--test", help="Held-out video (People-Snapshot layout) at the training video's resolution; another is refused."
+    ),
     iteration: Optional[int] = typer.Option(None, help="Avatar iteration [default: latest]."),
     frames: Optional[str] = typer.Option(None, help="Frame range START:END[:STEP] of the test video."),
 ) -> None:
@@ -120,8 +158,15 @@ def evaluate(
 @_one_line_errors
 def render(
     source: Path = typer.Argument(..., help="A workspace, an avatar PLY, or any 3DGS PLY (with --camera)."),
-    output: Path = typer.Option(..., "--output", "-o", help="PNG image, .mp4 video, or a folder for frames."),
-    camera: Optional[Path] = typer.Option(None, "--camera", "-c", help="Camera JSON: K, world_to_camera, width, height."),
+    output: Path = typer.Option(
+        ..., "--output", "-o",
+        help="PNG image (and X_alpha.png), .mp4 video, or a folder for frame_NNNN.png: a new or empty folder, or a "
+        "previous frames output (a folder with other files needs --force).",
+    ),  # fmt: skip
+    camera: Optional[Path] = typer.Option(
+        None, "--camera", "-c",
+        help="Camera JSON: K, world_to_camera, width, height (sides up to 8192 px, or $AVATARPERFECT_MAX_IMAGE_SIDE).",
+    ),  # fmt: skip
     pose: Optional[Path] = typer.Option(None, "--pose", help="Pose JSON: body pose, translation and camera."),
     motion: Optional[Path] = typer.Option(None, "--motion", help="SMPL motion .npz (poses (N,72), trans (N,3))."),
     turntable: int = typer.Option(0, help="Frames of a camera circling the avatar."),
@@ -129,6 +174,9 @@ def render(
     background: str = typer.Option("white", help="white, black or R,G,B in 0..1."),
     fps: float = typer.Option(30.0, help="Frame rate of videos."),
     device: str = typer.Option("auto", help="auto, cpu or cuda (static PLY renders)."),
+    force: bool = typer.Option(
+        False, "--force", help="Write frames into a folder that holds other files (they are kept; its frame_NNNN.png are replaced)."
+    ),
 ) -> None:
     """Render static Gaussians, or a skinned avatar in a pose, a motion or a turntable."""
     from avatarperfect_cli.stages import render as stage
@@ -136,28 +184,111 @@ def render(
     if camera is not None and pose is None and motion is None and turntable == 0:
         stage.render_ply(source, camera, output, None, background, device)
     else:
-        stage.render_avatar_views(source, output, pose, motion, turntable, camera, iteration, background, fps)
+        stage.render_avatar_views(source, output, pose, motion, turntable, camera, iteration, background, fps, force=force)
 
 
 @app.command("visibility")
-def visibility() -> None:
-    """Accumulate per-Gaussian visibility over the video and past edits."""
-    _not_implemented("visibility")
+@_one_line_errors
+def visibility(
+    workspace: Path = typer.Argument(..., help="Workspace folder."),
+    edit_weight: float = typer.Option(0.01, help="Weight w of the edit views in V (the paper: 0.01)."),
+) -> None:
+    """Accumulate per-Gaussian visibility over the video and past edits (ws/visibility/NNN.npz + .png)."""
+    from avatarperfect_cli.stages.visibility import visibility as run
+
+    run(workspace, edit_weight)
 
 
 @app.command("suggest")
-def suggest() -> None:
-    """Suggest the next body pose and camera to edit, and render it."""
-    _not_implemented("suggest")
+@_one_line_errors
+def suggest(
+    workspace: Path = typer.Argument(..., help="Workspace folder."),
+    body_pose: str = typer.Option("optimise", help="optimise (pose and camera), canonical (camera only) or random."),
+    random_view: bool = typer.Option(False, "--random", help="A random natural pose and camera (same as --body-pose random)."),
+    pose_prior: str = typer.Option("builtin", help="builtin (joint limits, free) or vposer (needs --vposer-dir)."),
+    vposer_dir: Optional[Path] = typer.Option(None, help="Folder with your licensed VPoser v2 checkpoint."),
+    starts: int = typer.Option(3, help="Optimisation starts (the best of many random cameras), the best kept."),
+    steps: int = typer.Option(30, help="Optimisation steps per start."),
+    resolution: int = typer.Option(128, help="Longest image side while optimising, pixels."),
+    edit_weight: float = typer.Option(0.01, help="Weight w of the edit views in V."),
+    seed: int = typer.Option(0, help="Seed; the same seed gives the same suggestion."),
+) -> None:
+    """Suggest the next body pose and camera to paint, and render it (ws/suggestions/NNN/)."""
+    from avatarperfect_cli.refinement.suggest import SuggestConfig
+    from avatarperfect_cli.stages.suggest import SuggestSettings
+    from avatarperfect_cli.stages.suggest import suggest as run
+
+    search = SuggestConfig(body_pose="random" if random_view else body_pose, starts=starts, steps=steps, resolution=resolution, seed=seed)
+    run(workspace, SuggestSettings(search, pose_prior, vposer_dir, edit_weight))
 
 
 @app.command("apply-edit")
-def apply_edit() -> None:
-    """Register a painted image: derive its mask and apply background deletions."""
-    _not_implemented("apply-edit")
+@_one_line_errors
+def apply_edit(
+    workspace: Path = typer.Argument(..., help="Workspace folder."),
+    edited: Optional[Path] = typer.Argument(None, help="Your painted image (PNG; JPEG works with a warning)."),
+    pose: Optional[Path] = typer.Option(None, "--pose", help="Pose JSON the image was rendered in [default: the latest suggestion]."),
+    mask: Optional[Path] = typer.Option(None, "--mask", help="Your own edit mask (white = edited) instead of the difference."),
+    region: Optional[Path] = typer.Option(None, "--region", help="A selection mask (white = selected) for --fill or --erase."),
+    fill: Optional[str] = typer.Option(None, "--fill", help="Fill --region: a colour (white, #rrggbb, R,G,B), telea, ns or diffusion."),
+    model_dir: Optional[Path] = typer.Option(None, "--model-dir", help="Your local Stable-Diffusion inpainting pipeline, for --fill diffusion."),
+    prompt: str = typer.Option("", "--prompt", help="Text prompt for --fill diffusion."),
+    erase: Optional[str] = typer.Option(None, "--erase", help="SuperSplat baseline: delete Gaussians in --region: center or splat."),
+    list_edits: bool = typer.Option(False, "--list", help="List the registered edits."),
+    remove: Optional[int] = typer.Option(None, "--remove", help="Withdraw edit N."),
+) -> None:
+    """Register a painted image as an edit (white = background, other colours = colour targets)."""
+    from avatarperfect_cli.stages import apply_edit as stage
+
+    if list_edits:
+        stage.list_edits(workspace)
+    elif remove is not None:
+        stage.remove_edit(workspace, remove)
+    elif erase is not None:
+        stage.erase_region(workspace, _required(region, "--erase needs --region MASK.png"), erase, pose)
+    elif fill is not None:
+        stage.fill_region(workspace, _required(region, "--fill needs --region MASK.png"), fill, pose, model_dir, prompt)
+    else:
+        stage.apply_edit(workspace, _required(edited, "give the painted image: avatarperfect apply-edit WS EDITED.png"), pose, mask)
 
 
 @app.command("refine")
-def refine() -> None:
-    """Re-optimise the avatar on the video plus every painted image."""
-    _not_implemented("refine")
+@_one_line_errors
+def refine(
+    workspace: Path = typer.Argument(..., help="Workspace folder."),
+    iterations: int = typer.Option(500, help="Training steps (the paper: 500)."),
+    edit_probability: float = typer.Option(0.3, help="Share of steps that train on an edit (the paper: 0.3)."),
+    seed: int = typer.Option(0, help="Random seed."),
+    revert_to: Optional[int] = typer.Option(None, "--revert-to", help="Make avatar iteration K current again (keeps the others)."),
+) -> None:
+    """Re-optimise the avatar on the video plus every painted image (writes the next avatar iteration)."""
+    from avatarperfect_cli.stages import refine as stage
+
+    if revert_to is not None:
+        stage.revert(workspace, revert_to)
+    else:
+        stage.refine(workspace, stage.RefineSettings(iterations, edit_probability, seed))
+
+
+@app.command("simulate-user")
+@_one_line_errors
+def simulate_user(
+    workspace: Path = typer.Argument(..., help="Workspace of a synthetic subject made by make-sample."),
+    subject: Optional[Path] = typer.Option(None, "--subject", help="The make-sample folder [default: the workspace's dataset]."),
+    style: str = typer.Option("exact", help="exact (true colours) or flat (each blob's mean colour, the inpaint tool)."),
+    budget: float = typer.Option(0.15, help="Most pixels painted, as a share of the subject's pixels."),
+    output: Optional[Path] = typer.Option(None, "--output", "-o", help="Edited PNG [default: the suggestion's simulated_edit.png]."),
+) -> None:
+    """Paint the latest suggestion as a careful person would (synthetic subjects only), for apply-edit."""
+    from avatarperfect_cli.sample.simulated_user import UserConfig
+    from avatarperfect_cli.stages.simulate_user import simulate_user as run
+
+    run(workspace, subject, UserConfig(style=style, budget=budget), output)
+
+
+def _required(value: Optional[Path], message: str) -> Path:
+    from avatarperfect_cli.errors import AvatarPerfectError
+
+    if value is None:
+        raise AvatarPerfectError(message)
+    return value

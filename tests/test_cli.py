@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import torch
 from typer.testing import CliRunner
 
@@ -73,3 +74,28 @@ def test_render_writes_rgb_and_alpha(tmp_path: Path):
 def test_bad_background_is_rejected(tmp_path: Path):
     result = CliRunner().invoke(app, ["render", "x.ply", "-c", "c.json", "-o", str(tmp_path / "o.png"), "--background", "mauve"])
     assert result.exit_code == 2 and "background" in result.stderr
+
+
+@pytest.mark.parametrize(
+    "arguments, problem",
+    [
+        (["train-initial", "{tmp}/data", "{tmp}/ws", "--iterations", "0"], "--iterations must be at least 1, got 0"),
+        (["train-initial", "{tmp}/data", "{tmp}/ws", "--resolution", "1"], "--resolution must be at least 16, got 1"),
+        (["train-initial", "{tmp}/data", "{tmp}/ws", "--sh-degree", "4"], "--sh-degree must be from 0 to 3, got 4"),
+        (["make-sample", "{tmp}/sample", "--resolution", "1"], "--resolution must be from 16 to 8192, got 1"),
+        (["make-sample", "{tmp}/sample", "--resolution", "30000"], "--resolution must be from 16 to 8192, got 30000"),
+    ],
+)
+def test_out_of_range_options_are_one_line(tmp_path: Path, arguments: list[str], problem: str):
+    """Not typer's five-line usage box: one line, status 2, before any work (nothing is written)."""
+    result = CliRunner().invoke(app, [argument.format(tmp=tmp_path) for argument in arguments])
+    assert result.exit_code == 2
+    assert result.stderr.strip() == f"error: {problem}"
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_unwritable_workspace_path_is_refused_before_training(tmp_path: Path):
+    (tmp_path / "file").write_text("")
+    result = CliRunner().invoke(app, ["train-initial", str(tmp_path / "data"), str(tmp_path / "file" / "ws")])
+    assert result.exit_code == 2
+    assert result.stderr.strip() == f"error: {tmp_path / 'file' / 'ws'}: cannot be written: {tmp_path / 'file'} is not a folder"

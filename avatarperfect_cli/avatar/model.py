@@ -182,13 +182,18 @@ class Avatar:
         }
         return cls(params, template.rest_joints.float(), sh_degree, 0, body_model)
 
-    def pose(self, body_pose: torch.Tensor, transl: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def pose(
+        self, body_pose: torch.Tensor, transl: torch.Tensor, world_transform: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Posed Gaussians by linear blend skinning; differentiable w.r.t. the parameters and the pose.
 
-        body_pose: (24, 3) SMPL axis-angle, joint 0 the global orientation; transl: (3,) metres.
+        body_pose: (24, 3) SMPL axis-angle, joint 0 the global orientation; transl: (3,) metres;
+        world_transform: optional (4, 4) rigid transform applied after posing (differentiable too).
         Returns world-frame means (N, 3) and quats (N, 4) w x y z.
         """
         transforms = forward_kinematics(body_pose[None], self.rest_joints, transl[None])[0]
+        if world_transform is not None:
+            transforms = world_transform @ transforms
         return skin_gaussians(self.params["means"], self.params["quats"], self.skin_weights, transforms)
 
     def to(self, device: torch.device | str) -> Avatar:

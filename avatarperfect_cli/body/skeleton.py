@@ -16,7 +16,12 @@ _SMALL_ANGLE_SQ = 1e-6
 # Polar decomposition: at most this many Newton steps (skinning blends converge in 2 to 6), stopping once
 # a step changes no entry by more than the tolerance for the dtype (the error then is about its square).
 _POLAR_MAX_ITERATIONS = 20
-_POLAR_TOLERANCE = {np.dtype(np.float32): 1e-4, np.dtype(np.float64): 1e-8}
+_POLAR_TOLERANCE = {torch.float32: 1e-4, torch.float64: 1e-8}
+# Newton steps use Frobenius-norm scaling only while a step still changes some entry by more than this.
+_POLAR_SCALING_CHANGE = 1e-2
+# Determinants smaller than this in magnitude are replaced by it (a rank-deficient blend).
+_TINY_DETERMINANT = 1e-30
+SKINNING_BACKENDS = ("auto", "numba", "torch")
 
 
 def _skew(v: torch.Tensor) -> torch.Tensor:
@@ -114,10 +119,10 @@ def _polar_rotation(m, tolerance, out) -> None:
         cd, ce, cf = c * h - b * i, a * i - c * g, b * g - a * h
         cg, ch, ci = b * f - c * e, c * d - a * f, a * e - b * d
         det = a * ca + b * cb + c * cc
-        if abs(det) < 1e-30:
-            det = 1e-30
+        if abs(det) < _TINY_DETERMINANT:
+            det = _TINY_DETERMINANT
         gamma = 1.0
-        if change > 1e-2:  # scale only far from convergence, where it saves iterations
+        if change > _POLAR_SCALING_CHANGE:  # scale only far from convergence, where it saves iterations
             norm_sq = a * a + b * b + c * c + d * d + e * e + f * f + g * g + h * h + i * i
             cof_norm_sq = ca * ca + cb * cb + cc * cc + cd * cd + ce * ce + cf * cf + cg * cg + ch * ch + ci * ci
             gamma = np.sqrt(np.sqrt(cof_norm_sq / norm_sq) / abs(det))
@@ -200,7 +205,7 @@ def _skin_gaussians_backward(
         c00, c11, c22 = k11 * k22 - k12 * k12, k00 * k22 - k02 * k02, k00 * k11 - k01 * k01
         c01, c02, c12 = k02 * k12 - k01 * k22, k01 * k12 - k02 * k11, k01 * k02 - k00 * k12
         det = k00 * c00 + k01 * c01 + k02 * c02
-        if abs(det) < 1e-30:
+        if abs(det) < _TINY_DETERMINANT:
             det = np.inf
         hx = (c00 * ox + c01 * oy + c02 * oz) / det
         hy = (c01 * ox + c11 * oy + c12 * oz) / det
@@ -242,7 +247,7 @@ class _SkinGaussians(torch.autograd.Function):
         rotation_quats = np.empty((n, 4), dtype=arrays[0].dtype)
         posed_means = np.empty((n, 3), dtype=arrays[1].dtype)
         posed_quats = np.empty((n, 4), dtype=arrays[2].dtype)
-        tolerance = _POLAR_TOLERANCE[arrays[0].dtype]
+        tolerance = _POLAR_TOLERANCE[blended.dtype]
         _skin_gaussians_forward(*arrays, tolerance, rotations, rotation_quats, posed_means, posed_quats)
         ctx.arrays = (*arrays, rotations, rotation_quats)
         return torch.from_numpy(posed_means).to(means.device), torch.from_numpy(posed_quats).to(quats.device)
@@ -256,6 +261,115 @@ class _SkinGaussians(torch.autograd.Function):
         )
         device = grad_means.device
         return tuple(torch.from_numpy(grad).to(device) for grad in grads)
+
+
+# The torch path (any device) stores 3x3 matrices entries first, (3, 3, N): every operation then runs on
+# contiguous length-N vectors (on the CPU, ops on (N, 3, 3) such as linalg.cross are ~10x slower).
+
+
+def _cross(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Cross products of (3, ...) vectors (components first)."""
+    return torch.stack([u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]])
+
+
+def _cofactors(m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(3, 3, ...) entries first -> cofactor matrices (3, 3, ...) (rows: cross products of the other two rows)
+    and determinants (...); M^-T = cofactors / det."""
+    cofactors = torch.stack([_cross(m[1], m[2]), _cross(m[2], m[0]), _cross(m[0], m[1])])
+    return cofactors, (m[0] * cofactors[0]).sum(0)
+
+
+@torch.no_grad()
+def _polar_rotation_torch(matrices: torch.Tensor) -> torch.Tensor:
+    """(3, 3, ...) entries first, M = R S (S symmetric positive) -> rotation factors R (3, 3, ...); no gradient.
+
+    The numba `_polar_rotation` batched: scaled Newton steps X <- (g X + X^-T / g) / 2 until no entry of
+    any matrix changes by more than the dtype's tolerance; a negative determinant gives -R.
+    """
+    tolerance = _POLAR_TOLERANCE[matrices.dtype]
+    x = matrices.contiguous()
+    change = torch.full(x.shape[2:], torch.inf, dtype=x.dtype, device=x.device)
+    for _ in range(_POLAR_MAX_ITERATIONS):
+        cofactors, det = _cofactors(x)
+        det = torch.where(det.abs() < _TINY_DETERMINANT, _TINY_DETERMINANT, det)
+        frobenius_ratio = torch.sqrt(cofactors.square().sum((0, 1)) / x.square().sum((0, 1)))
+        gamma = torch.where(change > _POLAR_SCALING_CHANGE, torch.sqrt(frobenius_ratio / det.abs()), 1.0)
+        step = 0.5 * (gamma * x + cofactors / (gamma * det))
+        change = (step - x).abs().amax((0, 1))
+        x = step
+        if not change.numel() or change.max() < tolerance:
+            break
+    return x * det.sign()  # det is never 0 here
+
+
+def _differentiable_polar_rotation(linear: torch.Tensor) -> torch.Tensor:
+    """(3, 3, ...) entries first, M -> its rotation factor R (3, 3, ...) with the exact derivative for autograd.
+
+    R comes from the Newton iteration without a graph. Differentiating M = R S gives dR = R [w]x with
+    (tr(S) I - sym S) w = vee(R^T dM - dM^T R), so R + R [w]x - stopgrad(R [w]x), w computed from the live M,
+    has R's value and R's derivative (the numba backward's formula) without differentiating the iteration.
+    """
+    rotation = _polar_rotation_torch(linear.detach())
+    if not linear.requires_grad:
+        return rotation
+    stretch = (rotation[:, :, None] * linear[:, None, :]).sum(0)  # R^T M, with the graph
+    fixed = stretch.detach()
+    trace = fixed[0, 0] + fixed[1, 1] + fixed[2, 2]
+    eye = torch.eye(3, dtype=linear.dtype, device=linear.device).reshape((3, 3) + (1,) * (linear.dim() - 2))
+    k_cofactors, k_det = _cofactors(eye * trace - 0.5 * (fixed + fixed.transpose(0, 1)))  # symmetric
+    k_det = torch.where(k_det.abs() < _TINY_DETERMINANT, torch.inf, k_det)
+    vee = torch.stack([stretch[2, 1] - stretch[1, 2], stretch[0, 2] - stretch[2, 0], stretch[1, 0] - stretch[0, 1]])
+    omega = (k_cofactors * vee[None]).sum(1) / k_det
+    turn = torch.stack([_cross(row, omega) for row in rotation])  # row i of R [w]x is r_i x w
+    return rotation + (turn - turn.detach())
+
+
+def _rotation_to_quaternion_torch(rotations: torch.Tensor) -> torch.Tensor:
+    """(3, 3, ...) entries first, rotations -> (4, ...) unit quaternions w x y z, w >= 0; differentiable.
+
+    The numba `_rotation_to_quaternion` batched: row k of the symmetric 4x4 table below is 2 sqrt(t_k) times
+    the quaternion; it uses the row with the largest diagonal t_k (the first on ties), picked by 0/1 masks
+    (a gather or argmax across the 4 rows is far slower on the CPU).
+    """
+    r = rotations
+    r00, r11, r22 = r[0, 0], r[1, 1], r[2, 2]
+    t0, t1, t2, t3 = 1 + r00 + r11 + r22, 1 + r00 - r11 - r22, 1 - r00 + r11 - r22, 1 - r00 - r11 + r22
+    xw, yw, zw = r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]
+    xy, xz, yz = r[1, 0] + r[0, 1], r[0, 2] + r[2, 0], r[2, 1] + r[1, 2]
+    first = (t0 >= t1) & (t0 >= t2) & (t0 >= t3)
+    second = ~first & (t1 >= t2) & (t1 >= t3)
+    third = ~first & ~second & (t2 >= t3)
+    fourth = ~(first | second | third)
+    table = [(t0, xw, yw, zw), (xw, t1, xy, xz), (yw, xy, t2, yz), (zw, xz, yz, t3)]
+    masks = [mask.to(r.dtype) for mask in (first, second, third, fourth)]
+    row = torch.stack([sum(mask * entries[c] for mask, entries in zip(masks, table)) for c in range(4)])
+    sign_over_norm = torch.where(row[0] < 0, -1.0, 1.0).to(r.dtype) / torch.sqrt((row * row).sum(0))
+    return row * sign_over_norm
+
+
+def _quaternion_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton products a * b of (..., 4) quaternions w x y z."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        dim=-1,
+    )
+
+
+def _skin_blended_torch(
+    blended: torch.Tensor, means: torch.Tensor, quats: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """`_SkinGaussians` in torch on any device, differentiable by autograd: (N, 3, 4), (N, 3), (N, 4) ->
+    posed means (N, 3), posed quats (N, 4)."""
+    posed_means = (blended[..., :3] * means[..., None, :]).sum(-1) + blended[..., 3]
+    rotation_quats = _rotation_to_quaternion_torch(_differentiable_polar_rotation(blended[..., :3].permute(1, 2, 0)))
+    return posed_means, _quaternion_multiply(rotation_quats.mT, quats)
 
 
 def _tree_levels(parents: tuple[int, ...]) -> tuple[list[list[int]], list[list[int]], list[int]]:
@@ -324,7 +438,12 @@ def skin_points(points: torch.Tensor, weights: torch.Tensor, transforms: torch.T
 
 
 def skin_gaussians(
-    means: torch.Tensor, quats: torch.Tensor, weights: torch.Tensor, transforms: torch.Tensor
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    weights: torch.Tensor,
+    transforms: torch.Tensor,
+    *,
+    backend: str = "auto",
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Linear blend skinning of Gaussian centres and orientations.
 
@@ -334,5 +453,12 @@ def skin_gaussians(
     transforms: (24, 4, 4) joint transforms from `forward_kinematics`
     returns     posed means (N, 3) and quats (N, 4): each orientation is turned by the rotation factor
                 of its blended 3x3 matrix (polar decomposition)
+    backend:    "numba" (CPU kernel with a closed-form backward), "torch" (any device, autograd) or "auto"
+                (numba for CPU tensors, torch otherwise); float32 or float64
     """
-    return _SkinGaussians.apply(blend_transforms(weights, transforms), means, quats)
+    if backend not in SKINNING_BACKENDS:
+        raise ValueError(f"unknown skinning backend {backend!r}; choose one of {', '.join(SKINNING_BACKENDS)}")
+    blended = blend_transforms(weights, transforms)
+    if backend == "numba" or (backend == "auto" and means.device.type == "cpu"):
+        return _SkinGaussians.apply(blended, means, quats)
+    return _skin_blended_torch(blended, means, quats)

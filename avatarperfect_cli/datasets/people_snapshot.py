@@ -39,6 +39,7 @@ from PIL import Image
 
 from avatarperfect_cli.errors import InputFileError
 from avatarperfect_cli.io.atomic import staging_dir
+from avatarperfect_cli.io.camera_json import check_camera_values
 from avatarperfect_cli.render.camera import Camera
 
 NUM_BETAS = 10
@@ -117,6 +118,7 @@ def load_people_snapshot(
     split: str | None = None,
     downscale: int = 1,
     pose_source: str = "auto",
+    with_images: bool = True,
 ) -> VideoDataset:
     """Load a People-Snapshot folder.
 
@@ -129,6 +131,7 @@ def load_people_snapshot(
                  Camera.scaled(1 / d) when d divides the size)
     pose_source: "auto" (the split file if any, else poses_optimized.npz, else poses.npz) or a path
                  relative to `root`
+    with_images: False reads only the poses and the camera (`images` and `masks` are then empty)
     Raises InputFileError naming the offending file for any missing or malformed input.
     """
     if split is not None and split not in SPLITS:
@@ -144,9 +147,20 @@ def load_people_snapshot(
     pose_path = _pose_path(root, split, pose_source)
     body_pose, transl, betas = _read_poses(pose_path, frame_ids)
     subject = _read_subject(root / "subject.json")
+    out_camera = _downscaled_camera(camera, downscale)
+    if not with_images:
+        return VideoDataset(
+            images=torch.empty(0, out_camera.height, out_camera.width, 3),
+            masks=torch.empty(0, out_camera.height, out_camera.width, dtype=torch.bool),
+            body_pose=torch.from_numpy(body_pose),
+            transl=torch.from_numpy(transl),
+            betas=torch.from_numpy(betas),
+            camera=out_camera,
+            frame_ids=torch.from_numpy(frame_ids),
+            subject=subject,
+        )
 
-    out_width = max(1, round(camera.width / downscale))
-    out_height = max(1, round(camera.height / downscale))
+    out_width, out_height = out_camera.width, out_camera.height
     images = np.empty((len(frame_ids), out_height, out_width, 3), dtype=np.float32)
     masks = np.empty((len(frame_ids), out_height, out_width), dtype=bool)
     full_size = (out_width, out_height) == (camera.width, camera.height)
@@ -168,16 +182,13 @@ def load_people_snapshot(
 
     _parallel_map(load_frame, range(len(frame_ids)))
 
-    K = camera.K.clone()
-    K[0] *= out_width / camera.width
-    K[1] *= out_height / camera.height
     return VideoDataset(
         images=torch.from_numpy(images),
         masks=torch.from_numpy(masks),
         body_pose=torch.from_numpy(body_pose),
         transl=torch.from_numpy(transl),
         betas=torch.from_numpy(betas),
-        camera=Camera(K, camera.world_to_camera, out_width, out_height),
+        camera=out_camera,
         frame_ids=torch.from_numpy(frame_ids),
         subject=subject,
     )
@@ -256,30 +267,33 @@ def write_people_snapshot(
 # ----------------------------------------------------------------------------------------------- reading
 
 
+def _downscaled_camera(camera: Camera, downscale: int) -> Camera:
+    """The camera for images of size round(W / d) x round(H / d); K's rows scale by the exact size ratio."""
+    width, height = max(1, round(camera.width / downscale)), max(1, round(camera.height / downscale))
+    K = camera.K.clone()
+    K[0] *= width / camera.width
+    K[1] *= height / camera.height
+    return Camera(K, camera.world_to_camera, width, height)
+
+
 def read_dataset_camera(root: Path) -> Camera:
     """The camera of a People-Snapshot folder (its cameras.npz) at the images' native size."""
     return _read_camera(Path(root) / "cameras.npz")
 
 
 def _read_camera(path: Path) -> Camera:
+    """The camera of cameras.npz, validated like a camera JSON (`check_camera_values`)."""
     data = _load_npz(path, "camera file")
-    K = _array(data, "intrinsic", path, (3, 3))
-    world_to_camera = _array(data, "extrinsic", path, (4, 4))
-    rotation = world_to_camera[:3, :3]
-    rigid = (
-        np.allclose(world_to_camera[3], [0, 0, 0, 1], atol=1e-6)
-        and np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-4)
-        and np.linalg.det(rotation) > 0
-    )
-    if not rigid:
-        raise InputFileError(path, "extrinsic is not a rigid world->camera transform")
+    K = torch.from_numpy(_array(data, "intrinsic", path, (3, 3)))
+    world_to_camera = torch.from_numpy(_array(data, "extrinsic", path, (4, 4)))
     size = {}
     for key in ("height", "width"):
         value = _array(data, key, path, None)
         if value.size != 1 or not float(value.reshape(-1)[0]).is_integer() or value.reshape(-1)[0] < 1:
             raise InputFileError(path, f"{key} must be one positive integer, got {value.reshape(-1)[:4].tolist()}")
         size[key] = int(value.reshape(-1)[0])
-    return Camera(torch.from_numpy(K).float(), torch.from_numpy(world_to_camera).float(), size["width"], size["height"])
+    check_camera_values(K, world_to_camera, size["width"], size["height"], path, ("'intrinsic'", "'extrinsic'"))
+    return Camera(K.float(), world_to_camera.float(), size["width"], size["height"])
 
 
 def _select_frames(images_dir: Path, frames: FrameRange | None) -> np.ndarray:
@@ -367,19 +381,33 @@ def _read_subject(path: Path) -> dict[str, Any] | None:
     return subject
 
 
-def _read_image(path: Path, camera: Camera) -> np.ndarray:
-    """(H, W, 3) uint8 RGB (a channel-reversed view of the decoded BGR array)."""
+def _decode_8bit(path: Path, mode: str) -> np.ndarray | None:
+    """(H, W, 3) RGB ("RGB") or (H, W) gray ("L") uint8 pixels of an image file, None when it cannot be decoded.
+
+    16-bit images keep their high byte and alpha is dropped, as OpenCV's IMREAD_COLOR / IMREAD_GRAYSCALE do.
+    Pillow decodes rather than OpenCV because libpng, inside OpenCV, prints damage reports on stderr.
+    """
     try:
-        image = cv2.imdecode(np.fromfile(path, dtype=np.uint8), cv2.IMREAD_COLOR)
-    except (OSError, cv2.error):
-        image = None
+        with Image.open(path) as image:
+            image.load()
+            if image.mode in ("I", "I;16", "I;16B", "I;16L"):
+                gray = (np.asarray(image).astype(np.int64).clip(0, 65535) >> 8).astype(np.uint8)
+                return np.repeat(gray[:, :, None], 3, axis=2) if mode == "RGB" else gray
+            return np.asarray(image.convert(mode))
+    except (OSError, ValueError, Image.DecompressionBombError):
+        return None
+
+
+def _read_image(path: Path, camera: Camera) -> np.ndarray:
+    """(H, W, 3) uint8 RGB."""
+    image = _decode_8bit(path, "RGB")
     if image is None:
         raise InputFileError(path, "image unreadable")
     if image.shape[:2] != (camera.height, camera.width):
         raise InputFileError(
             path, f"image is {image.shape[1]}x{image.shape[0]}, cameras.npz says {camera.width}x{camera.height}"
         )
-    return image[:, :, ::-1]
+    return image
 
 
 def _read_mask(masks_dir: Path, frame: int, camera: Camera) -> np.ndarray:
@@ -394,10 +422,7 @@ def _read_mask(masks_dir: Path, frame: int, camera: Camera) -> np.ndarray:
             raise InputFileError(path, "mask unreadable") from None
     elif png_path.is_file():
         path, on_value = png_path, 255
-        try:
-            mask = cv2.imdecode(np.fromfile(png_path, dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
-        except (OSError, cv2.error):
-            mask = None
+        mask = _decode_8bit(png_path, "L")
         if mask is None:
             raise InputFileError(path, "mask unreadable")
     else:

@@ -2,8 +2,13 @@
 
 from __future__ import annotations
 
+import ctypes
+import errno
+import glob
 import os
 import secrets
+import shutil
+import sys
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -52,3 +57,76 @@ def staging_dir(target: Path) -> Path:
     os.umask(umask)
     path.chmod(0o777 & ~umask)
     return path
+
+
+@contextmanager
+def atomic_folder(target: Path) -> Iterator[Path]:
+    """Yield a new hidden staging folder beside `target`; on success it replaces `target` (see
+    `replace_folder`), on any error it is deleted. Readers see the old folder or the complete new one."""
+    staging = staging_dir(target)
+    try:
+        yield staging
+        replace_folder(staging, target)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def replace_folder(staging: Path, target: Path) -> None:
+    """Move the complete folder `staging` onto `target` (which may exist), as one step where possible.
+
+    On Linux an existing `target` is swapped with `staging` by renameat2(RENAME_EXCHANGE), so every
+    reader sees the old folder or the new one; the old one, now at `staging`, is then deleted. Where
+    that call is missing, the old folder is renamed aside first (`recover_folder` puts it back if a
+    crash comes between the two renames).
+    """
+    if not target.exists():
+        os.replace(staging, target)
+        return
+    if _exchange(staging, target):
+        shutil.rmtree(staging, ignore_errors=True)
+        return
+    retired = _retired_name(target)
+    os.replace(target, retired)
+    os.replace(staging, target)
+    shutil.rmtree(retired, ignore_errors=True)
+
+
+def recover_folder(target: Path) -> None:
+    """Undo what a crash inside `replace_folder` or `staging_dir` left: put a retired `target` back if
+    `target` is missing, and delete the hidden staging folders beside `target`."""
+    retired = _retired_name(target)
+    if retired.is_dir() and not target.exists():
+        os.replace(retired, target)
+    for leftover in target.parent.glob(f".{glob.escape(target.name)}.*.tmp*"):
+        if leftover.is_dir():
+            shutil.rmtree(leftover, ignore_errors=True)
+
+
+def remove_temporaries(folder: Path) -> None:
+    """Delete the temporary files `atomic_path` left in `folder` and its subfolders (after a kill)."""
+    for leftover in folder.rglob(".*.tmp-*"):
+        if leftover.is_file():
+            leftover.unlink(missing_ok=True)
+
+
+def _retired_name(target: Path) -> Path:
+    return target.with_name(f".{target.name}.retired.tmp")
+
+
+_AT_FDCWD = -100
+_RENAME_EXCHANGE = 2
+
+
+def _exchange(first: Path, second: Path) -> bool:
+    """Atomically swap two paths with Linux's renameat2; False where the system cannot."""
+    if not sys.platform.startswith("linux"):
+        return False
+    renameat2 = getattr(ctypes.CDLL(None, use_errno=True), "renameat2", None)
+    if renameat2 is None:
+        return False
+    if renameat2(_AT_FDCWD, os.fsencode(first), _AT_FDCWD, os.fsencode(second), _RENAME_EXCHANGE) == 0:
+        return True
+    code = ctypes.get_errno()
+    if code in (errno.ENOSYS, errno.EINVAL, errno.EOPNOTSUPP):
+        return False
+    raise OSError(code, os.strerror(code), str(second))

@@ -17,13 +17,18 @@ def read_motion(path: Path) -> tuple[torch.Tensor, torch.Tensor]:
     """body_pose (N, 24, 3) axis-angle (joint 0 = global orientation) and transl (N, 3), metres."""
     require_file(path)
     try:
-        with np.load(path) as data:
+        data = np.load(path, allow_pickle=False)
+        if not isinstance(data, np.lib.npyio.NpzFile):
+            raise InputFileError(path, "a single .npy array; a motion is an .npz with poses (N, 72) and trans (N, 3)")
+        with data:
             arrays = {key: data[key] for key in data.files}
-    except (OSError, ValueError, zipfile.BadZipFile) as error:
+    except (OSError, ValueError, EOFError, MemoryError, zipfile.BadZipFile) as error:
         raise InputFileError(path, f"not a readable .npz motion ({error})") from None
     for key in ("poses", "trans"):
         if key not in arrays:
             raise InputFileError(path, f"missing '{key}' (a motion has poses (N, 72) and trans (N, 3))")
+        if arrays[key].dtype.kind not in "iuf":
+            raise InputFileError(path, f"'{key}' holds {arrays[key].dtype} values, not numbers")
     poses, trans = arrays["poses"], arrays["trans"]
     if poses.ndim != 2 or poses.shape[1] < 72 or poses.shape[0] == 0:
         raise InputFileError(path, f"poses must be (N, 72) with N >= 1, got {poses.shape}")

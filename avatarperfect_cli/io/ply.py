@@ -10,9 +10,10 @@ degree >= 1 channel-major (all red, then green, then blue), as in the Inria and 
 from __future__ import annotations
 
 import json
+import os
 import re
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 import torch
@@ -30,6 +31,7 @@ _REST_COUNTS = {3 * (num_sh_bases(degree) - 1) for degree in range(4)}  # 0, 9, 
 _REST_NAME = re.compile(r"f_rest_\d+")
 _EXTRA_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 _STANDARD_GROUPS = ("f_dc", "f_rest", "scale", "rot")  # names whose `{group}_{j}` properties are standard
+_TRAILING_PROBE = 4096  # bytes read past a binary body to tell trailing data from a final newline
 
 
 def _names(prefix: str, count: int) -> list[str]:
@@ -86,7 +88,9 @@ def write_gaussians(path: Path | str, gaussians: Gaussians) -> None:
 def _read_ply(path: Path) -> PlyData:
     require_file(path)
     try:
-        return PlyData.read(str(path))  # memory-mapped: binary bodies load without Python loops
+        with open(path, "rb") as handle:
+            ply = PlyData.read(handle)  # memory-mapped: binary bodies load without Python loops
+            extra = _trailing_text_rows(path, ply) if ply.text else _trailing_binary_data(handle)
     except OSError as error:
         raise InputFileError(path, f"cannot read file: {error.strerror or error}") from None
     except UnicodeDecodeError:
@@ -100,6 +104,30 @@ def _read_ply(path: Path) -> PlyData:
         raise InputFileError(path, f"not a PLY file ({error})") from None
     except (ValueError, MemoryError) as error:  # e.g. an element count too large for memory
         raise InputFileError(path, f"cannot load PLY body: {error}") from None
+    if extra:
+        declared = ", ".join(f"element {element.name} {element.count}" for element in ply.elements)
+        problem = f"{extra} after the data its header declares ({declared}): a wrong count or trailing data"
+        raise InputFileError(path, problem)
+    return ply
+
+
+def _trailing_binary_data(handle: BinaryIO) -> str | None:
+    """What follows the body of a binary PLY that PlyData.read just read (it leaves `handle` right after the
+    last element), e.g. "96 bytes"; None when nothing but whitespace follows."""
+    rest = handle.read(_TRAILING_PROBE)
+    if not rest.strip():
+        return None
+    return f"{os.fstat(handle.fileno()).st_size - handle.tell() + len(rest)} bytes"
+
+
+def _trailing_text_rows(path: Path, ply: PlyData) -> str | None:
+    """Non-blank rows of an ASCII PLY beyond those its header declares, e.g. "2 lines"; None when there are none."""
+    with open(path, "rb") as handle:
+        for line in handle:
+            if line.strip() == b"end_header":
+                break
+        extra = sum(1 for line in handle if line.strip()) - sum(element.count for element in ply.elements)
+    return f"{extra} lines" if extra > 0 else None
 
 
 def _parse_comment(comments: list[str], path: Path) -> dict[str, Any]:

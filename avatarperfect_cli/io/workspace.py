@@ -8,14 +8,16 @@
     ws/eval/000/test/        metrics.json and comparison image, per evaluated video
 
 A new workspace is assembled in a hidden sibling folder and renamed into place, so an interrupted
-train-initial leaves nothing behind; later stages write each file atomically.
+train-initial leaves nothing behind; later stages write each file or folder atomically and commit by
+rewriting the manifest last. Every stage that writes a workspace holds its lock (`locked_workspace`),
+and the next stage to take the lock removes what a killed one left behind.
 """
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
-import shutil
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -23,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
-from avatarperfect_cli.io.atomic import atomic_write_text, staging_dir
+from avatarperfect_cli.io.atomic import atomic_folder, atomic_write_text, recover_folder, remove_temporaries
 
 MANIFEST = "workspace.json"
 WORKSPACE_FORMAT = "avatarperfect.workspace"
@@ -60,6 +62,39 @@ class Workspace:
 
     def save_manifest(self) -> None:
         atomic_write_text(self.root / MANIFEST, json.dumps(self.manifest, indent=2) + "\n")
+
+    def commit(self, entry: dict[str, Any], iteration: int | None = None) -> None:
+        """Append `entry` to the history (and make `iteration` current) in one atomic manifest write:
+        the step that makes a stage's already written files part of the workspace. An entry that
+        wrote an avatar names its iteration under "avatar"."""
+        self.manifest.setdefault("history", []).append(entry)
+        if iteration is not None:
+            self.manifest["iteration"] = iteration
+        self.save_manifest()
+
+    def committed_avatars(self) -> set[int]:
+        """Iterations whose avatar the history records (iteration 0 always: train-initial)."""
+        history = self.manifest.get("history", [])
+        return {0} | {entry["avatar"] for entry in history if isinstance(entry.get("avatar"), int)}
+
+    def numbered_folders(self, kind: str) -> list[Path]:
+        """The complete folders ws/KIND/NNN (suggestions, edits), in numerical order."""
+        parent = self.root / kind
+        if not parent.is_dir():
+            return []
+        return sorted((p for p in parent.iterdir() if p.is_dir() and p.name.isdigit()), key=lambda p: int(p.name))
+
+    def next_numbered_folder(self, kind: str) -> Path:
+        """ws/KIND/NNN for the next free number, counting from 1 (numbers are never reused)."""
+        existing = [int(p.name) for p in self.numbered_folders(kind)]
+        return self.root / kind / f"{max(existing, default=0) + 1:03d}"
+
+    def remove_uncommitted(self) -> None:
+        """Delete avatar files a killed stage wrote but never committed to the manifest."""
+        committed = self.committed_avatars()
+        for path in (self.root / "avatar").glob("*.ply"):
+            if path.stem.isdigit() and int(path.stem) not in committed:
+                path.unlink(missing_ok=True)
 
 
 def open_workspace(root: Path) -> Workspace:
@@ -98,17 +133,50 @@ def new_workspace(root: Path, manifest: dict[str, Any], force: bool = False) -> 
     Workspace (whose root is the staging folder) and must not keep it after the block.
     """
     check_new_workspace(root, force)
-    staging = staging_dir(root)
-    try:
+    with atomic_folder(root) as staging:
         workspace = Workspace(staging, {"format": WORKSPACE_FORMAT, "version": WORKSPACE_VERSION, **manifest})
         yield workspace
         workspace.save_manifest()
-        if root.exists():
-            retired = staging.with_name(staging.name + "-old")
-            os.replace(root, retired)
-            os.replace(staging, root)
-            shutil.rmtree(retired, ignore_errors=True)
-        else:
-            os.replace(staging, root)
+
+
+def lock_path(root: Path) -> Path:
+    """The lock file of the workspace at `root`: a hidden sibling, so it outlives `--force` replacing the folder."""
+    root = Path(os.path.abspath(root))
+    return root.with_name(f".{root.name}.lock")
+
+
+@contextmanager
+def workspace_lock(root: Path) -> Iterator[None]:
+    """Hold the workspace's lock for the block, or refuse at once (one line) while another stage holds it.
+
+    An OS file lock (flock): the kernel releases it when its process ends, however it ends, so a
+    killed stage never leaves a stale lock. On entry, leftovers of a killed stage are cleaned up.
+    """
+    path = lock_path(root)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    descriptor = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(descriptor, 32, 0).decode(errors="replace").strip() or "?"
+            raise AvatarPerfectError(
+                f"{root}: another avatarperfect stage (pid {holder}) is using this workspace; wait for it to finish"
+            ) from None
+        os.ftruncate(descriptor, 0)
+        os.pwrite(descriptor, f"{os.getpid()}\n".encode(), 0)
+        recover_folder(Path(os.path.abspath(root)))
+        if root.is_dir():
+            remove_temporaries(root)
+        yield
     finally:
-        shutil.rmtree(staging, ignore_errors=True)
+        os.close(descriptor)  # releases the lock
+
+
+@contextmanager
+def locked_workspace(root: Path) -> Iterator[Workspace]:
+    """Open the workspace at `root` under its lock (see `workspace_lock`)."""
+    with workspace_lock(root):
+        workspace = open_workspace(root)
+        workspace.remove_uncommitted()
+        yield workspace

@@ -63,3 +63,27 @@ def look_at(eye: torch.Tensor, target: torch.Tensor, up: torch.Tensor) -> torch.
     view[:3, :3] = rotation
     view[:3, 3] = -rotation @ eye
     return view
+
+
+def rotation_about(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
+    """(3, 3) rotation by `angle` (radians, a 0-d tensor, differentiable) about the unit `axis` (3,) (Rodrigues)."""
+    cross = torch.zeros(3, 3, dtype=axis.dtype)
+    cross[0, 1], cross[0, 2], cross[1, 2] = -axis[2], axis[1], -axis[0]
+    cross = cross - cross.T
+    identity = torch.eye(3, dtype=axis.dtype)
+    return identity + torch.sin(angle) * cross + (1 - torch.cos(angle)) * (cross @ cross)
+
+
+def framing_distance(points: torch.Tensor, rotation: torch.Tensor, K: torch.Tensor, width: int, height: int, fill: float) -> float:
+    """Distance, metres, from the look-at point to a camera with `rotation` (3, 3, world -> camera) and
+    intrinsics K, W x H, at which every point fits inside `fill` of the image around the principal point.
+
+    points: (N, 3) relative to the look-at point, world frame. The camera sits at -distance * forward.
+    """
+    local = points.detach().double() @ rotation.detach().double().T
+    x, y, z = local.unbind(-1)
+    fx, fy, cx, cy = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+    need_x = torch.where(x > 0, fx * x / (fill * (width - cx)), -fx * x / (fill * cx)) - z
+    need_y = torch.where(y > 0, fy * y / (fill * (height - cy)), -fy * y / (fill * cy)) - z
+    nearest = float((-z).max()) + 0.05  # keep every point at least 5 cm in front of the camera
+    return max(float(need_x.max()), float(need_y.max()), nearest)

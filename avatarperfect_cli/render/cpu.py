@@ -102,3 +102,28 @@ def rasterize_to_pixels(
     return _RasterizeToPixels.apply(
         means2d, conics, opacities, features, background, extents, depths, drawn, width, height
     )
+
+
+def max_weight_in_region(
+    means2d: torch.Tensor,
+    conics: torch.Tensor,
+    opacities: torch.Tensor,
+    extents: torch.Tensor,
+    depths: torch.Tensor,
+    drawn: torch.Tensor,
+    region: torch.Tensor,
+) -> torch.Tensor:
+    """(N,) the largest blending weight T * alpha each Gaussian has at any pixel of `region` (H, W) bool,
+    composited as `rasterize_to_pixels` does; 0 for Gaussians that reach none of its pixels."""
+    height, width = region.shape
+    depth_array = _array(depths)
+    depth_keys = depth_array.view(np.uint32 if depth_array.itemsize == 4 else np.uint64)
+    offsets, tile_gaussians = kernels.bin_gaussians(
+        _array(means2d), _array(extents), depth_keys, 8 * depth_array.itemsize, _array(drawn), width, height, TILE_SIZE
+    )
+    per_intersection = kernels.max_pixel_weights(
+        _array(means2d), _array(conics), _array(opacities), offsets, tile_gaussians, _array(region), TILE_SIZE
+    )
+    out = np.zeros(means2d.shape[0], dtype=per_intersection.dtype)
+    np.maximum.at(out, tile_gaussians, per_intersection)
+    return torch.from_numpy(out)

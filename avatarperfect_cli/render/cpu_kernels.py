@@ -346,3 +346,43 @@ def sum_per_gaussian(values, tile_gaussians, n_gaussians):
         for d in range(values.shape[1]):
             out[g, d] += values[j, d]
     return out
+
+
+@njit(cache=True, parallel=True)
+def max_pixel_weights(means2d, conics, opacities, tile_offsets, tile_gaussians, region, tile_size):
+    """Per intersection, the largest T * alpha the Gaussian reaches at any pixel of `region` in its tile.
+
+    region (H, W) bool selects the pixels; the compositing follows `rasterize_forward` exactly (every
+    pixel of a tile that holds region pixels is composited, so transmittances are the image's).
+    Returns (n_intersections,) weights, 0 for Gaussians that reach no region pixel.
+    """
+    height, width = region.shape
+    tiles_x = (width + tile_size - 1) // tile_size
+    n_tiles = tile_offsets.shape[0] - 1
+    out = np.zeros(tile_gaussians.shape[0], dtype=means2d.dtype)
+    for t in prange(n_tiles):
+        x0 = (t % tiles_x) * tile_size
+        y0 = (t // tiles_x) * tile_size
+        x1 = min(x0 + tile_size, width)
+        y1 = min(y0 + tile_size, height)
+        if not region[y0:y1, x0:x1].any():
+            continue
+        for y in range(y0, y1):
+            for x in range(x0, x1):
+                if not region[y, x]:
+                    continue
+                T = 1.0
+                for j in range(tile_offsets[t], tile_offsets[t + 1]):
+                    g = tile_gaussians[j]
+                    dx = means2d[g, 0] - (x + 0.5)
+                    dy = means2d[g, 1] - (y + 0.5)
+                    sigma = 0.5 * (conics[g, 0] * dx * dx + conics[g, 2] * dy * dy) + conics[g, 1] * dx * dy
+                    alpha = min(ALPHA_MAX, opacities[g] * math.exp(-sigma))
+                    if sigma < 0.0 or alpha < ALPHA_MIN:
+                        continue
+                    next_T = T * (1.0 - alpha)
+                    if next_T <= TRANSMITTANCE_MIN:
+                        break
+                    out[j] = max(out[j], alpha * T)
+                    T = next_T
+    return out

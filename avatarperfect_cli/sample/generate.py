@@ -17,20 +17,17 @@ from rich.progress import Progress
 
 from avatarperfect_cli.body import load_body_template
 from avatarperfect_cli.body.base import BodyTemplate
-from avatarperfect_cli.body.skeleton import forward_kinematics, skin_points
 from avatarperfect_cli.datasets.people_snapshot import write_people_snapshot
 from avatarperfect_cli.errors import AvatarPerfectError
 from avatarperfect_cli.io.motion import write_motion
 from avatarperfect_cli.render.camera import Camera, look_at
 from avatarperfect_cli.sample import motions
-from avatarperfect_cli.sample.mesh_raster import render_mesh, vertex_normals
-from avatarperfect_cli.sample.texture import HIDDEN_REGIONS, REGION, REGIONS, SubjectTexture, get_preset, paint_texture
+from avatarperfect_cli.sample.subject import SyntheticSubject, frame_pixels, skin_template
+from avatarperfect_cli.sample.texture import HIDDEN_REGIONS, REGION, REGIONS, get_preset
 
-TEXTURE_SIZE = 1024
 CAMERA_DISTANCE = 2.6  # metres from the camera to the vertical axis the body turns about
 FRAME_MARGIN = 1.1  # the image spans this many times the widest view angle any frame needs
 MIN_RESOLUTION = 16  # pixels; below this the body is a few pixels tall
-AMBIENT = 0.55  # share of unshaded light in the headlight shading
 
 
 @dataclass
@@ -62,25 +59,23 @@ def make_sample(
             f"make-sample needs a resolution of at least {MIN_RESOLUTION} px and at least one frame per video, "
             f"got {resolution} px, {train_frames} training and {test_frames} test frames"
         )
-    subject_preset = get_preset(preset)
-    template = load_body_template("anny", phenotype=subject_preset.phenotype)
-    texture = paint_texture(template, subject_preset, TEXTURE_SIZE, seed)
+    synthetic = SyntheticSubject.create(preset, seed)
     posed = {
-        "train": posed_vertices(template, motions.turntable(train_frames, seed)),
-        "test": posed_vertices(template, motions.held_out_motion(test_frames)),
+        "train": posed_vertices(synthetic.template, motions.turntable(train_frames, seed)),
+        "test": posed_vertices(synthetic.template, motions.held_out_motion(test_frames)),
     }
     camera = fit_camera(np.concatenate([vertices.reshape(-1, 3) for vertices, _ in posed.values()]), resolution)
     with Progress(transient=True) as progress:
         task = progress.add_task("rendering frames", total=train_frames + test_frames)
         rendered = {
-            split: render_video(template, texture, camera, vertices, lambda: progress.advance(task))
+            split: render_video(synthetic, camera, vertices, lambda: progress.advance(task))
             for split, (vertices, _) in posed.items()
         }
     for split, video in rendered.items():
         motion = posed[split][1]
         subject = {
             "body_model": "anny",
-            "phenotype": subject_preset.phenotype,
+            "phenotype": get_preset(preset).phenotype,
             "preset": preset,
             "seed": seed,
             "split": split,
@@ -124,10 +119,7 @@ def posed_vertices(template: BodyTemplate, motion: motions.Motion) -> tuple[np.n
     """Skin the template by `motion` and lift every frame so its lowest vertex stands on the rest pose's
     floor. Returns vertices (T, V, 3) float64 metres and the motion with the grounded translations."""
     vertices = template.vertices.double()
-    body_pose = torch.as_tensor(motion.body_pose, dtype=torch.float64)
-    transl = torch.as_tensor(motion.transl, dtype=torch.float64)
-    transforms = forward_kinematics(body_pose, template.rest_joints.double(), transl)
-    posed = skin_points(vertices, template.weights.double(), transforms)
+    posed = skin_template(template, torch.as_tensor(motion.body_pose), torch.as_tensor(motion.transl))
     lift = vertices[:, 1].min() - posed[:, :, 1].min(dim=1).values
     posed[:, :, 1] += lift[:, None]
     grounded = motion.transl.copy()
@@ -136,26 +128,19 @@ def posed_vertices(template: BodyTemplate, motion: motions.Motion) -> tuple[np.n
 
 
 def render_video(
-    template: BodyTemplate,
-    texture: SubjectTexture,
+    subject: SyntheticSubject,
     camera: Camera,
     posed: np.ndarray,
     on_frame: Callable[[], None] = lambda: None,
 ) -> RenderedVideo:
-    """Render the template's posed vertices (T, V, 3); `on_frame` is called after each frame (progress)."""
-    faces = template.faces.numpy()
-    uvs, face_uvs = template.uvs.double().numpy(), template.face_uvs.numpy()
+    """Render the subject's posed vertices (T, V, 3); `on_frame` is called after each frame (progress)."""
     count, size = len(posed), (camera.height, camera.width)
     images = np.empty((count, *size, 3), np.uint8)
     masks = np.empty((count, *size), bool)
     region_pixels = np.empty((count, len(REGIONS)), np.int64)
     for index, vertices in enumerate(posed):
-        frame = render_mesh(
-            vertices, faces, uvs, face_uvs, texture.image, camera,
-            normals=vertex_normals(vertices, faces), ambient=AMBIENT, face_labels=texture.face_regions,
-        )  # fmt: skip
-        images[index] = np.round(np.clip(frame.rgb, 0.0, 1.0) * 255.0).astype(np.uint8)
-        masks[index] = frame.coverage >= 0.5
+        frame = subject.render_vertices(vertices, camera)
+        images[index], masks[index] = frame_pixels(frame)
         region_pixels[index] = np.bincount(frame.labels[frame.labels >= 0], minlength=len(REGIONS))
         on_frame()
     return RenderedVideo(images, masks, region_pixels)

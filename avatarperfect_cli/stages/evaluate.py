@@ -18,9 +18,12 @@ from rich.table import Table
 from avatarperfect_cli.avatar.model import Avatar
 from avatarperfect_cli.avatar.rendering import render_avatar
 from avatarperfect_cli.datasets import FrameRange, load_people_snapshot
-from avatarperfect_cli.errors import AvatarPerfectError
+from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
 from avatarperfect_cli.io import atomic_write_text, write_image
-from avatarperfect_cli.io.workspace import open_workspace
+from avatarperfect_cli.io.atomic import atomic_folder
+from avatarperfect_cli.io.outputs import check_writable_folder
+from avatarperfect_cli.io.workspace import MANIFEST, Workspace, locked_workspace
+from avatarperfect_cli.stages.workspace_data import training_camera
 from avatarperfect_cli.training import metrics
 
 WHITE = torch.ones(3)
@@ -43,12 +46,28 @@ def evaluate(
 ) -> dict:
     """Evaluate avatar `iteration` (default: the latest) on `test_dataset`, at the training resolution.
 
+    The test video is downscaled by the training video's factor and must then have the training size;
+    another resolution is refused (one line) rather than scored at a different size.
     Writes ws/eval/NNN/<test folder name>/metrics.json (per frame and mean) and comparison.png;
     returns the metrics.
     """
-    workspace = open_workspace(workspace_root)
+    with locked_workspace(workspace_root) as workspace:
+        return _evaluate(workspace, test_dataset, iteration, frames, progress)
+
+
+def _evaluate(workspace: Workspace, test_dataset: Path, iteration: int | None, frames: FrameRange | None, progress: bool) -> dict:
     avatar = Avatar.load(workspace.require_avatar(iteration))
-    test = load_people_snapshot(test_dataset, frames, downscale=int(workspace.manifest.get("downscale", 1)))
+    out_dir = workspace.eval_dir(iteration) / Path(test_dataset).resolve().name
+    check_writable_folder(out_dir.parent)
+    trained = training_camera(workspace)
+    downscale = _training_downscale(workspace)
+    test = load_people_snapshot(test_dataset, frames, downscale=downscale)
+    if (test.camera.width, test.camera.height) != (trained.width, trained.height):
+        raise InputFileError(
+            test_dataset,
+            f"its frames are {test.camera.width}x{test.camera.height} after the training downscale of {downscale}, but "
+            f"the avatar was trained at {trained.width}x{trained.height}; evaluate on a video of the training resolution",
+        )
     per_frame = []
     grid_rows = []
     grid_every = max(1, len(test) // GRID_ROWS)
@@ -76,9 +95,9 @@ def evaluate(
         "mean": mean,
         "per_frame": per_frame,
     }
-    out_dir = workspace.eval_dir(iteration) / Path(test_dataset).resolve().name
-    atomic_write_text(out_dir / "metrics.json", json.dumps(result, indent=2) + "\n")
-    write_image(out_dir / "comparison.png", comparison_grid(grid_rows))
+    with atomic_folder(out_dir) as staging:
+        atomic_write_text(staging / "metrics.json", json.dumps(result, indent=2) + "\n")
+        write_image(staging / "comparison.png", comparison_grid(grid_rows))
     if progress:
         table = Table(title=f"avatar {result['iteration']:03d} on {len(per_frame)} frames of {out_dir.name}")
         for name in ("IoU", "PSNR (dB)", "SSIM"):
@@ -87,3 +106,11 @@ def evaluate(
         Console(stderr=True).print(table)
         Console(stderr=True).print(f"wrote {out_dir / 'metrics.json'} and comparison.png")
     return result
+
+
+def _training_downscale(workspace: Workspace) -> int:
+    """The integer factor the training images were downscaled by (1 when the manifest does not say)."""
+    downscale = workspace.manifest.get("downscale", 1)
+    if not isinstance(downscale, int) or isinstance(downscale, bool) or downscale < 1:
+        raise InputFileError(workspace.root / MANIFEST, f"'downscale' must be a positive integer, got {downscale!r}")
+    return downscale

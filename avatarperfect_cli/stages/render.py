@@ -1,10 +1,23 @@
-"""The `render` stage: static Gaussians with a camera, or a skinned avatar posed by a pose, a motion or a turntable."""
+"""The `render` stage: static Gaussians with a camera, or a skinned avatar posed by a pose, a motion or a turntable.
+
+Every output is checked before anything is rendered. Images come in pairs (X.png and X_alpha.png) that
+appear together or not at all. Motions and turntables stream their frames, as they are rendered, into an
+.mp4 or a folder of frame_0000.png, ... that appears only when complete:
+- a new folder is filled in a hidden sibling and renamed into place;
+- an existing folder must be empty or a previous frames output (only frame_NNNN.png files); its
+  frame_NNNN.png files are replaced once all frames are rendered, and those beyond the new count removed.
+  Any other folder is refused unless `force`, which writes the frames beside its other files (kept).
+Nothing else is ever deleted.
+"""
 
 from __future__ import annotations
 
 import math
 import os
+import re
 import shutil
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
@@ -14,16 +27,21 @@ from rich.progress import track
 
 from avatarperfect_cli.avatar.model import Avatar
 from avatarperfect_cli.avatar.rendering import render_avatar
-from avatarperfect_cli.errors import AvatarPerfectError
+from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
 from avatarperfect_cli.gaussians import Gaussians
 from avatarperfect_cli.io import atomic_path, read_camera, read_gaussians, read_pose, write_image
 from avatarperfect_cli.io.atomic import staging_dir
-from avatarperfect_cli.io.camera_json import camera_from_json
 from avatarperfect_cli.io.motion import read_motion
-from avatarperfect_cli.io.workspace import open_workspace
+from avatarperfect_cli.io.outputs import check_writable_folder, check_writable_output, write_image_pair
+from avatarperfect_cli.io.pose_json import NUM_JOINTS
+from avatarperfect_cli.io.workspace import MANIFEST, open_workspace
 from avatarperfect_cli.render import Camera, RenderOutput, rasterization
+from avatarperfect_cli.stages.workspace_data import reference_pose, training_camera
 
 NAMED_BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
+FRAME_NAME = re.compile(r"frame_(\d{4,})\.png")
+FRAMES_STAGING = "avatarperfect-frames"  # frames are staged in OUTPUT/.avatarperfect-frames.*.tmp
+EMPTY_ALPHA = 0.5 / 255  # a render whose alpha stays below this is the bare background once written in 8 bits
 
 
 def parse_background(text: str) -> torch.Tensor:
@@ -71,6 +89,16 @@ def default_alpha_path(output: Path) -> Path:
     return output.with_name(f"{output.stem}_alpha.png")
 
 
+def _warn(message: str) -> None:
+    """One line on stderr (no wrapping)."""
+    Console(stderr=True, soft_wrap=True).print(f"[yellow]warning[/]: {message}", markup=True, highlight=False)
+
+
+def _is_empty(out: RenderOutput) -> bool:
+    """True when nothing of the Gaussians shows in the render (it is the background only)."""
+    return float(out.alpha.max()) < EMPTY_ALPHA
+
+
 def render_ply(
     source: Path,
     camera_path: Path,
@@ -79,14 +107,22 @@ def render_ply(
     background: str = "white",
     device: str = "auto",
 ) -> None:
-    """Render a Gaussian PLY with a camera JSON to an RGB PNG and an alpha PNG (both written atomically)."""
+    """Render a Gaussian PLY with a camera JSON to an RGB PNG and an alpha PNG (written together, atomically).
+
+    Both outputs are checked before any work; a warning goes to stderr when the camera sees none of the
+    Gaussians.
+    """
     _require_png(output)
+    alpha_output = alpha_output or default_alpha_path(output)
+    check_writable_output(output)
+    check_writable_output(alpha_output)
     background_color, torch_device = parse_background(background), resolve_device(device)
     gaussians = read_gaussians(source)
     camera = read_camera(camera_path)
     out = render_gaussians(gaussians, camera, background_color, torch_device)
-    write_image(output, out.image.clamp(0, 1).cpu())
-    write_image(alpha_output or default_alpha_path(output), out.alpha.cpu())
+    if _is_empty(out):
+        _warn(f"{output}: the camera sees none of the Gaussians of {source}; the image is only background")
+    write_image_pair(output, out.image.clamp(0, 1).cpu(), alpha_output, out.alpha.cpu())
 
 
 def orbit_cameras(camera: Camera, center: torch.Tensor, count: int) -> list[Camera]:
@@ -106,38 +142,117 @@ def orbit_cameras(camera: Camera, center: torch.Tensor, count: int) -> list[Came
     return cameras
 
 
-def _avatar_and_camera(source: Path, iteration: int | None) -> tuple[Avatar, Camera | None, dict]:
-    """An avatar from a workspace (latest or `iteration`) or an avatar PLY, with the workspace's camera."""
+def _avatar_and_reference(
+    source: Path, iteration: int | None
+) -> tuple[Avatar, Camera | None, tuple[torch.Tensor, torch.Tensor]]:
+    """An avatar from a workspace (latest or `iteration`) or an avatar PLY, with the workspace's camera and
+    reference pose (body_pose (24, 3), transl (3,)); an avatar PLY has no camera and the rest pose at 0."""
     if source.is_dir():
         workspace = open_workspace(source)
-        avatar = Avatar.load(workspace.require_avatar(iteration))
-        return avatar, camera_from_json(workspace.manifest["camera"], source / "workspace.json"), workspace.manifest
-    return Avatar.load(source), None, {}
+        camera, reference = training_camera(workspace), reference_pose(workspace)
+        if not (reference.body_pose.isfinite().all() and reference.transl.isfinite().all()):
+            raise InputFileError(workspace.root / MANIFEST, "'reference_pose' holds NaN or Inf")
+        return Avatar.load(workspace.require_avatar(iteration)), camera, (reference.body_pose, reference.transl)
+    return Avatar.load(source), None, (torch.zeros(NUM_JOINTS, 3), torch.zeros(3))
 
 
-def _write_frames(output: Path, frames: list[torch.Tensor], fps: float) -> None:
-    """An .mp4 (OpenCV, mp4v) or a folder of frame_NNNN.png; both appear only when complete."""
+def check_video_output(output: Path, force: bool = False) -> None:
+    """Refuse, before any rendering, an output that `--motion` / `--turntable` may not write (see the module doc).
+
+    output: an .mp4 file, or a folder for the frames (new, empty, or a previous frames output; another
+    folder only with `force`).
+    """
     if output.suffix.lower() == ".mp4":
-        height, width = frames[0].shape[:2]
-        with atomic_path(output) as temporary:
-            writer = cv2.VideoWriter(str(temporary), cv2.VideoWriter_fourcc(*"mp4v"), fps, (width, height))
-            if not writer.isOpened():
-                raise AvatarPerfectError(f"{output}: OpenCV cannot write mp4 video here")
-            for frame in frames:
-                rgb = (frame.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
-                writer.write(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-            writer.release()
+        check_writable_output(output)
         return
-    if output.suffix:
+    if output.suffix and not output.is_dir():
         raise AvatarPerfectError(f"{output}: give an .mp4 file or a folder for the frames")
-    staging = staging_dir(output)
+    check_writable_folder(output)
+    if output.is_dir() and not force:
+        others = sorted(entry.name for entry in os.scandir(output) if not _is_frames_entry(entry))
+        if others:
+            more = f" and {len(others) - 1} more" if len(others) > 1 else ""
+            raise AvatarPerfectError(
+                f"{output}: the folder holds other files than frames ('{others[0]}'{more}); give a new or empty "
+                "folder, or pass --force to write the frames beside them"
+            )
+
+
+def _is_frames_entry(entry: os.DirEntry) -> bool:
+    """A frame_NNNN.png file, or a staging folder a killed render left."""
+    if entry.name.startswith(f".{FRAMES_STAGING}.") and entry.name.endswith(".tmp"):
+        return entry.is_dir(follow_symlinks=False)
+    return bool(FRAME_NAME.fullmatch(entry.name)) and entry.is_file(follow_symlinks=False)
+
+
+@contextmanager
+def _frame_writer(output: Path, width: int, height: int, fps: float) -> Iterator[Callable[[torch.Tensor], None]]:
+    """A function that appends one frame (H, W, 3) in [0, 1] to the .mp4 or frames folder `output`, which
+    appears complete when the block succeeds and not at all (or unchanged) when it fails."""
     try:
-        for index, frame in enumerate(frames):
-            write_image(staging / f"frame_{index:04d}.png", frame.clamp(0, 1))
-        shutil.rmtree(output, ignore_errors=True)
-        os.replace(staging, output)
+        if output.suffix.lower() == ".mp4":
+            with _mp4_writer(output, width, height, fps) as write:
+                yield write
+        else:
+            with _png_frames_writer(output) as write:
+                yield write
+    except OSError as error:  # e.g. the disk filled up
+        raise InputFileError(output, f"cannot be written: {error.strerror or error}") from None
+
+
+@contextmanager
+def _mp4_writer(output: Path, width: int, height: int, fps: float) -> Iterator[Callable[[torch.Tensor], None]]:
+    """Encode frames (OpenCV, mp4v) into a temporary file that replaces `output` when the block succeeds."""
+    with atomic_path(output) as temporary:
+        writer = cv2.VideoWriter(str(temporary), cv2.VideoWriter_fourcc(*"mp4v"), fps, (width, height))
+        if not writer.isOpened():
+            raise AvatarPerfectError(f"{output}: OpenCV cannot write mp4 video here")
+
+        def write(frame: torch.Tensor) -> None:
+            rgb = (frame.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
+            writer.write(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+
+        try:
+            yield write
+        finally:
+            writer.release()
+
+
+@contextmanager
+def _png_frames_writer(output: Path) -> Iterator[Callable[[torch.Tensor], None]]:
+    """Write frame_0000.png, ... into a hidden staging folder; when the block succeeds it becomes the new
+    folder `output`, or its frames replace those of the existing folder `output` (see the module doc)."""
+    existing = output.is_dir()
+    if existing:
+        for leftover in output.glob(f".{FRAMES_STAGING}.*.tmp"):  # from a killed render
+            shutil.rmtree(leftover, ignore_errors=True)
+    staging = staging_dir(output / FRAMES_STAGING if existing else output)
+    count = 0
+
+    def write(frame: torch.Tensor) -> None:
+        nonlocal count
+        write_image(staging / f"frame_{count:04d}.png", frame.clamp(0, 1))
+        count += 1
+
+    try:
+        yield write
+        if existing:
+            _move_frames(staging, output, count)
+        else:
+            os.rename(staging, output)  # fails rather than replace a folder that appeared meanwhile
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+
+
+def _move_frames(staging: Path, output: Path, count: int) -> None:
+    """Move frames 0..count-1 from `staging` into `output`, then remove output's frames numbered count or more."""
+    for index in range(count):
+        name = f"frame_{index:04d}.png"
+        os.replace(staging / name, output / name)
+    for entry in os.scandir(output):
+        match = FRAME_NAME.fullmatch(entry.name)
+        if match and int(match[1]) >= count and entry.is_file(follow_symlinks=False):
+            os.unlink(entry.path)
 
 
 def render_avatar_views(
@@ -151,43 +266,57 @@ def render_avatar_views(
     background: str = "white",
     fps: float = 30.0,
     progress: bool = True,
+    force: bool = False,
 ) -> None:
     """Render a skinned avatar (workspace or avatar PLY) posed by a pose JSON, a motion file, or on a turntable.
 
-    pose:      one image (the pose JSON's own camera) to `output` (.png)
+    pose:      one image (the pose JSON's own camera) to `output` (.png) and its alpha beside it
     motion:    one frame per motion pose, seen by `camera_path` or the workspace's training camera; the
                motion starts where the training subject stood (its translation is taken relative to
                its first frame)
     turntable: that many frames of a camera circling the avatar in the training video's first pose
+    Frames stream to an .mp4 or a frames folder (`force`: see the module doc). Outputs are checked before
+    any work; a warning goes to stderr for renders that show none of the avatar.
     """
     background_color = parse_background(background)
     if pose is not None:
         _require_png(output)
-    avatar, camera, manifest = _avatar_and_camera(source, iteration)
+        check_writable_output(output)
+        check_writable_output(default_alpha_path(output))
+    else:
+        if motion is None and turntable == 0:
+            raise AvatarPerfectError("a skinned avatar needs one of --pose, --motion or --turntable")
+        if turntable < 0 or (motion is not None and turntable):
+            raise AvatarPerfectError("give either --motion or --turntable with a positive number of frames")
+        if not (math.isfinite(fps) and fps > 0):
+            raise AvatarPerfectError(f"--fps must be a positive number, got {fps}")
+        check_video_output(output, force)
+    avatar, camera, (reference_body_pose, reference_transl) = _avatar_and_reference(source, iteration)
     if camera_path is not None:
         camera = read_camera(camera_path)
     if pose is not None:
         pose_file = read_pose(pose)
         with torch.no_grad():
             out = render_avatar(avatar, pose_file.body_pose, pose_file.transl, pose_file.camera, background_color)
-        write_image(output, out.image.clamp(0, 1))
-        write_image(default_alpha_path(output), out.alpha)
+        if _is_empty(out):
+            _warn(f"{output}: the pose's camera sees none of the avatar; the image is only background")
+        write_image_pair(output, out.image.clamp(0, 1), default_alpha_path(output), out.alpha)
         return
     if camera is None:
         raise AvatarPerfectError(f"{source}: an avatar PLY needs --camera for --motion and --turntable")
-    reference = manifest.get("reference_pose", {"body_pose": [[0.0] * 3] * 24, "transl": [0.0, 0.0, 0.0]})
-    reference_pose, reference_transl = torch.tensor(reference["body_pose"]), torch.tensor(reference["transl"])
     if motion is not None:
         body_poses, transl = read_motion(motion)
         transl = transl - transl[:1] + reference_transl
         views = [(body_poses[t], transl[t], camera) for t in range(len(body_poses))]
-    elif turntable > 0:
-        center = reference_transl + avatar.rest_joints[0]
-        views = [(reference_pose, reference_transl, c) for c in orbit_cameras(camera, center, turntable)]
     else:
-        raise AvatarPerfectError("a skinned avatar needs one of --pose, --motion or --turntable")
-    frames = []
-    with torch.no_grad():
-        for body_pose, translation, view_camera in track(views, description="rendering", console=Console(stderr=True), disable=not progress):
-            frames.append(render_avatar(avatar, body_pose, translation, view_camera, background_color).image)
-    _write_frames(output, frames, fps)
+        center = reference_transl + avatar.rest_joints[0]
+        views = [(reference_body_pose, reference_transl, c) for c in orbit_cameras(camera, center, turntable)]
+    empty = 0
+    console = Console(stderr=True)
+    with _frame_writer(output, camera.width, camera.height, fps) as write, torch.no_grad():
+        for body_pose, translation, view_camera in track(views, "rendering", console=console, disable=not progress):
+            out = render_avatar(avatar, body_pose, translation, view_camera, background_color)
+            empty += _is_empty(out)
+            write(out.image)
+    if empty:
+        _warn(f"{output}: {empty} of {len(views)} frames show none of the avatar (the camera looks away from it)")

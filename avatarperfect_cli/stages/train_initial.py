@@ -15,7 +15,7 @@ from avatarperfect_cli.datasets import FrameRange, VideoDataset, load_people_sna
 from avatarperfect_cli.errors import AvatarPerfectError
 from avatarperfect_cli.io.atomic import atomic_path
 from avatarperfect_cli.io.camera_json import camera_to_json
-from avatarperfect_cli.io.workspace import check_new_workspace, new_workspace
+from avatarperfect_cli.io.workspace import check_new_workspace, new_workspace, workspace_lock
 from avatarperfect_cli.training.pose_refinement import PoseRefiner
 from avatarperfect_cli.training.trainer import TrainConfig, train, video_views
 
@@ -84,6 +84,11 @@ def train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool =
     """
     if fit.iterations < 1:
         raise AvatarPerfectError(f"iterations must be at least 1, got {fit.iterations}")
+    with workspace_lock(workspace):
+        return _train_initial(dataset, workspace, fit, force, progress)
+
+
+def _train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool, progress: bool) -> Path:
     check_new_workspace(workspace, force)
     console = Console(stderr=True, quiet=not progress)
     video = fit.video.load(dataset)
@@ -104,7 +109,7 @@ def train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool =
         "body_model": body_model,
         "reference_pose": {"body_pose": video.body_pose[0].tolist(), "transl": video.transl[0].tolist()},
         "iteration": 0,
-        "history": [{"stage": "train-initial", "iterations": fit.iterations, "seed": fit.seed, "seconds": round(seconds, 1), "gaussians": len(avatar)}],
+        "history": [{"stage": "train-initial", "avatar": 0, "iterations": fit.iterations, "seed": fit.seed, "seconds": round(seconds, 1), "gaussians": len(avatar)}],
     }
     if refiner is not None:
         manifest["refined_poses"] = REFINED_POSES

@@ -212,3 +212,167 @@ def test_quaternion_round_trip_in_every_branch() -> None:
     torch.testing.assert_close(recovered, quats * signs)
     rotations = torch.linalg.matrix_exp(_skew(2.5 * torch.randn(100, 3, generator=generator, dtype=torch.float64)))
     torch.testing.assert_close(quaternion_to_matrix(matrix_to_quaternion(rotations)), rotations)
+
+
+def _concentrated_weights(n: int, generator: torch.Generator) -> torch.Tensor:
+    """Softmax weights with most of each point's mass on 1 to 3 random joints."""
+    logits = torch.zeros(n, NUM_JOINTS, dtype=torch.float64)
+    for count in (1, 2, 3):
+        rows = torch.arange(n)[torch.arange(n) % 3 == count - 1]
+        joints = torch.randint(0, NUM_JOINTS, (rows.shape[0], count), generator=generator)
+        boost = 6.0 + 4.0 * torch.rand(rows.shape[0], count, generator=generator, dtype=torch.float64)
+        logits[rows[:, None], joints] = boost
+    return torch.softmax(logits, dim=-1)
+
+
+def _skinning_case(n: int, dtype: torch.dtype, seed: int) -> list[torch.Tensor]:
+    """means (n, 3), quats (n, 4), concentrated weights (n, 24), FK transforms (24, 4, 4) of a random pose."""
+    generator = torch.Generator().manual_seed(seed)
+    joints = _rest_joints(generator)
+    pose = 0.8 * torch.randn(1, NUM_JOINTS, 3, generator=generator, dtype=torch.float64)
+    transforms = forward_kinematics(pose, joints, torch.randn(1, 3, generator=generator, dtype=torch.float64))[0]
+    means = torch.randn(n, 3, generator=generator, dtype=torch.float64)
+    quats = torch.randn(n, 4, generator=generator, dtype=torch.float64)
+    return [tensor.to(dtype) for tensor in (means, quats, _concentrated_weights(n, generator), transforms)]
+
+
+def _skin_with_gradients(
+    inputs: list[torch.Tensor], backend: str, upstream: tuple[torch.Tensor, torch.Tensor]
+) -> list[torch.Tensor]:
+    """posed means, posed quats, then the gradients of <upstream, outputs> w.r.t. means, quats, weights, transforms."""
+    leaves = [tensor.clone().requires_grad_() for tensor in inputs]
+    posed_means, posed_quats = skin_gaussians(*leaves, backend=backend)
+    grads = torch.autograd.grad([posed_means, posed_quats], leaves, list(upstream))
+    return [posed_means.detach(), posed_quats.detach(), *grads]
+
+
+def _assert_close_relative(actual: torch.Tensor, expected: torch.Tensor, tolerance: float) -> None:
+    """Every entry within `tolerance` times the largest magnitude in `expected`."""
+    torch.testing.assert_close(actual, expected, rtol=tolerance, atol=tolerance * expected.abs().max().item())
+
+
+def _assert_backends_agree(inputs: list[torch.Tensor], tolerance: float, seed: int) -> None:
+    generator = torch.Generator().manual_seed(seed)
+    n, dtype = inputs[0].shape[0], inputs[0].dtype
+    upstream = (torch.randn(n, 3, generator=generator).to(dtype), torch.randn(n, 4, generator=generator).to(dtype))
+    numba_results = _skin_with_gradients(inputs, "numba", upstream)
+    torch_results = _skin_with_gradients(inputs, "torch", upstream)
+    for actual, expected in zip(torch_results, numba_results):
+        _assert_close_relative(actual, expected, tolerance)
+
+
+@pytest.mark.parametrize(("dtype", "tolerance"), [(torch.float32, 1e-5), (torch.float64, 1e-10)])
+@pytest.mark.parametrize("seed", [10, 11, 12])
+def test_torch_skinning_matches_numba_forward_and_backward(dtype: torch.dtype, tolerance: float, seed: int) -> None:
+    _assert_backends_agree(_skinning_case(3000, dtype, seed), tolerance, seed)
+
+
+def test_torch_skinning_without_gradients_gives_the_same_values() -> None:
+    inputs = _skinning_case(500, torch.float32, 13)
+    with torch.no_grad():
+        plain = skin_gaussians(*inputs, backend="torch")
+    tracked = skin_gaussians(*[tensor.clone().requires_grad_() for tensor in inputs], backend="torch")
+    for value, with_graph in zip(plain, tracked):
+        assert torch.equal(value, with_graph.detach())
+
+
+def test_auto_backend_is_numba_on_the_cpu_and_unknown_backends_are_refused() -> None:
+    inputs = _skinning_case(200, torch.float32, 14)
+    for auto, numba_result in zip(skin_gaussians(*inputs), skin_gaussians(*inputs, backend="numba")):
+        assert torch.equal(auto, numba_result)
+    with pytest.raises(ValueError, match="cuda"):
+        skin_gaussians(*inputs, backend="cuda")
+
+
+def test_torch_skinning_gradcheck() -> None:
+    means, quats, weights, transforms = _skinning_case(6, torch.float64, 15)
+
+    def skin(means: torch.Tensor, quats: torch.Tensor, weights: torch.Tensor, transforms: torch.Tensor):
+        return skin_gaussians(means, quats, weights, transforms, backend="torch")
+
+    inputs = tuple(tensor.requires_grad_() for tensor in (means, quats, weights, transforms))
+    # fast mode (a random projection of the Jacobian, checked against finite differences) keeps the
+    # 570 inputs to a second; the pose gradchecks below use the full Jacobian
+    assert torch.autograd.gradcheck(skin, inputs, fast_mode=True)
+
+
+@pytest.mark.parametrize("scale", [0.0, 0.8])
+def test_torch_skinning_gradcheck_wrt_pose(scale: float) -> None:
+    generator = torch.Generator().manual_seed(16)
+    joints = _rest_joints(generator)
+    pose = (scale * torch.randn(1, NUM_JOINTS, 3, generator=generator, dtype=torch.float64)).requires_grad_()
+    transl = torch.randn(1, 3, generator=generator, dtype=torch.float64).requires_grad_()
+    means = torch.randn(5, 3, generator=generator, dtype=torch.float64)
+    quats = torch.randn(5, 4, generator=generator, dtype=torch.float64)
+    weights = _sparse_weights(5, generator, per_point=4)
+
+    def skin(pose: torch.Tensor, transl: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return skin_gaussians(means, quats, weights, forward_kinematics(pose, joints, transl)[0], backend="torch")
+
+    assert torch.autograd.gradcheck(skin, (pose, transl))
+
+
+def _edge_transforms() -> torch.Tensor:
+    """(24, 4, 4): joint 0 the identity, 1-3 half turns about x, y, z, 4-6 turns by pi - 1e-3 about x, y, z,
+    7 the half turn about (1, 1, 0) (equal t1 and t2: a tie between quaternion branches), the rest random."""
+    generator = torch.Generator().manual_seed(17)
+    axis_angles = 0.5 * torch.randn(NUM_JOINTS, 3, generator=generator, dtype=torch.float64)
+    axis_angles[0] = 0.0
+    axis_angles[4:7] = (torch.pi - 1e-3) * torch.eye(3, dtype=torch.float64)
+    transforms = torch.eye(4, dtype=torch.float64).repeat(NUM_JOINTS, 1, 1)
+    transforms[:, :3, :3] = axis_angle_to_matrix(axis_angles)
+    eye = torch.eye(3, dtype=torch.float64)
+    transforms[1:4, :3, :3] = 2 * torch.diag_embed(eye) - eye  # diag(1, -1, -1) and its permutations
+    transforms[7, :3, :3] = torch.tensor([[0.0, 1, 0], [1, 0, 0], [0, 0, -1]], dtype=torch.float64)
+    transforms[:, :3, 3] = torch.randn(NUM_JOINTS, 3, generator=generator, dtype=torch.float64)
+    return transforms
+
+
+def _edge_weights() -> torch.Tensor:
+    """Rows: each of joints 0-7 alone; near-opposite pairs (the identity and a half turn, nearly rank 1);
+    three half turns (a blend with negative determinant); two turns by pi - 1e-3 about different axes."""
+    rows = [[(joint, 1.0)] for joint in range(8)]
+    rows += [[(0, 0.5 + 1e-6), (1, 0.5 - 1e-6)], [(0, 0.5 - 1e-4), (2, 0.5 + 1e-4)], [(0, 0.6), (3, 0.4)]]
+    rows += [[(1, 0.4), (2, 0.35), (3, 0.25)], [(4, 0.5), (5, 0.5)], [(5, 0.3), (6, 0.7)]]
+    weights = torch.zeros(len(rows), NUM_JOINTS, dtype=torch.float64)
+    for row, entries in enumerate(rows):
+        for joint, weight in entries:
+            weights[row, joint] = weight
+    return weights
+
+
+def test_torch_skinning_matches_numba_on_degenerate_blends_and_every_quaternion_branch() -> None:
+    weights = _edge_weights()
+    transforms = _edge_transforms()
+    generator = torch.Generator().manual_seed(18)
+    means = torch.randn(weights.shape[0], 3, generator=generator, dtype=torch.float64)
+    quats = torch.randn(weights.shape[0], 4, generator=generator, dtype=torch.float64)
+    _assert_backends_agree([means, quats, weights, transforms], 1e-10, seed=19)
+    # Nearly rank-1 blends (two singular values ~1e-4) amplify float32 rounding in the torch path's float32
+    # arithmetic (the numba kernel iterates in float64) by ~1e4, so float32 is compared on the others only.
+    blended = torch.einsum("nj,jab->nab", weights, transforms)
+    linear = blended[:, :3, :3]
+    well_conditioned = torch.linalg.svdvals(linear)[:, 1:].sum(-1) > 0.1
+    assert well_conditioned.sum() == weights.shape[0] - 3
+    kept = [tensor[well_conditioned].float() for tensor in (means, quats, weights)]
+    _assert_backends_agree([*kept, transforms.float()], 1e-5, seed=19)
+
+    posed_means, posed_quats = skin_gaussians(means, quats, weights, transforms, backend="torch")
+    torch.testing.assert_close(posed_means, (linear @ means[..., None])[..., 0] + blended[:, :3, 3])
+    # reference rotation: the SVD polar factor U V^T, negated where det M < 0 as the kernel documents
+    u, _, vh = torch.linalg.svd(linear)
+    reference = (u @ vh) * torch.sign(torch.linalg.det(linear))[:, None, None]
+    assert (torch.linalg.det(reference) > 0).all()
+    torch.testing.assert_close(quaternion_to_matrix(posed_quats), reference @ quaternion_to_matrix(quats))
+    torch.testing.assert_close(posed_quats.norm(dim=-1), quats.norm(dim=-1))
+    # single joints: the rotation quaternion r = posed * conj(q) / |q|^2 has w >= 0 and is the joint's own
+    single = posed_quats[:8]
+    conj = quats[:8] * torch.tensor([1.0, -1, -1, -1], dtype=torch.float64)
+    w, x, y, z = single.unbind(-1)
+    cw, cx, cy, cz = conj.unbind(-1)
+    rotation_quats = torch.stack(
+        [w * cw - x * cx - y * cy - z * cz, w * cx + x * cw + y * cz - z * cy,
+         w * cy - x * cz + y * cw + z * cx, w * cz + x * cy - y * cx + z * cw],
+        dim=-1,
+    ) / quats[:8].norm(dim=-1, keepdim=True) ** 2  # fmt: skip
+    torch.testing.assert_close(rotation_quats, matrix_to_quaternion(transforms[:8, :3, :3]))

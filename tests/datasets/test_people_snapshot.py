@@ -357,6 +357,45 @@ def test_error_cameras_non_finite(source: Source) -> None:
     assert "non-finite" in expect_error(source.root / "cameras.npz").problem
 
 
+@pytest.mark.parametrize(
+    "index, value, problem",
+    [((0, 0), 0.0, "positive focal lengths"), ((1, 1), -11.0, "positive focal lengths"), ((2, 1), 0.3, "last row [0, 0, 1]")],
+)
+def test_error_intrinsic_values(source: Source, index: tuple[int, int], value: float, problem: str) -> None:
+    K = source.K.copy()
+    K[index] = value
+    rewrite_npz(source.root / "cameras.npz", intrinsic=K)
+    assert problem in expect_error(source.root / "cameras.npz").problem
+
+
+def test_error_image_size_beyond_the_maximum(source: Source) -> None:
+    rewrite_npz(source.root / "cameras.npz", width=np.int64(30000), height=np.int64(30000))
+    assert "maximum side of 8192 px" in expect_error(source.root / "cameras.npz").problem
+
+
+def test_sixteen_bit_images_keep_their_high_byte(source: Source) -> None:
+    """As OpenCV's IMREAD_COLOR does: a 16-bit gray frame v reads as v >> 8 in each channel."""
+    gray = np.random.default_rng(3).integers(0, 65536, (HEIGHT, WIDTH), dtype=np.uint16)
+    assert cv2.imwrite(str(source.root / "images" / "image_0002.png"), gray)
+    data = load_people_snapshot(source.root, FrameRange(2, 2))
+    expected = np.where(source.masks[2], (gray >> 8).astype(np.float64) / 255, 1.0)
+    np.testing.assert_allclose(data.images[0].numpy(), np.repeat(expected[:, :, None], 3, axis=2), atol=1e-6)
+
+
+@pytest.mark.parametrize("damage", ["truncated", "bad checksum"])
+def test_damaged_png_is_reported_once_and_nothing_is_printed(source: Source, capfd: pytest.CaptureFixture, damage: str) -> None:
+    path = source.root / "images" / "image_0003.png"
+    data = bytearray(path.read_bytes())
+    if damage == "truncated":
+        data = data[: len(data) // 2]
+    else:
+        data[data.index(b"IDAT") + 6] ^= 0xFF  # inside the compressed pixels: the chunk's CRC no longer matches
+    path.write_bytes(bytes(data))
+    assert "unreadable" in expect_error(path).problem
+    captured = capfd.readouterr()
+    assert captured.err == "" and captured.out == ""
+
+
 def test_error_no_images(source: Source) -> None:
     for path in (source.root / "images").iterdir():
         path.unlink()

@@ -6,8 +6,8 @@ from typing import Any
 import pytest
 import torch
 
-from avatarperfect_cli.errors import InputFileError
-from avatarperfect_cli.io.camera_json import read_camera, write_camera
+from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
+from avatarperfect_cli.io.camera_json import MAX_IMAGE_SIDE_VARIABLE, read_camera, write_camera
 from avatarperfect_cli.render.camera import Camera, look_at
 
 
@@ -90,6 +90,10 @@ MALFORMED: dict[str, tuple[str | dict[str, Any], str]] = {
     "fractional height": (modified(height=480.5), "'height' must be a positive integer, got 480.5"),
     "boolean width": (modified(width=True), "'width' must be a positive integer, got True"),
     "negative focal": (modified(K=[[-500, 0, 320], [0, 500, 240], [0, 0, 1]]), "positive focal lengths"),
+    "zero focal": (modified(K=[[500, 0, 320], [0, 0, 240], [0, 0, 1]]), "positive focal lengths"),
+    "K last row": (modified(K=[[500, 0, 320], [0, 500, 240], [0, 0.5, 1]]), "last row [0, 0, 1]"),
+    "beyond float32": (modified(K=[[1e39, 0, 320], [0, 500, 240], [0, 0, 1]]), "'K' holds values too large for float32"),
+    "huge image": (modified(width=30000, height=30000), "image size 30000x30000 exceeds the maximum side of 8192 px"),
     "not a rotation": (modified(world_to_camera=_scaled_rotation()), "3x3 part is not a rotation"),
     "reflection": (modified(world_to_camera=_reflection()), "reflection"),
     "view last row": (
@@ -116,3 +120,18 @@ def test_unreadable_files(tmp_path: Path) -> None:
     (tmp_path / "latin1.json").write_bytes(b'{"K": "\xe9"}')
     with pytest.raises(InputFileError, match="not a UTF-8 text file"):
         read_camera(tmp_path / "latin1.json")
+
+
+def test_the_maximum_image_side_follows_the_environment(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = tmp_path / "big.json"
+    path.write_text(json.dumps(modified(width=9000, height=100)))
+    with pytest.raises(InputFileError, match="maximum side of 8192 px"):
+        read_camera(path)
+    monkeypatch.setenv(MAX_IMAGE_SIDE_VARIABLE, "9000")
+    assert read_camera(path).width == 9000
+    monkeypatch.setenv(MAX_IMAGE_SIDE_VARIABLE, "8999")
+    with pytest.raises(InputFileError, match="maximum side of 8999 px"):
+        read_camera(path)
+    monkeypatch.setenv(MAX_IMAGE_SIDE_VARIABLE, "lots")
+    with pytest.raises(AvatarPerfectError, match=MAX_IMAGE_SIDE_VARIABLE):
+        read_camera(path)

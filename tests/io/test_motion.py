@@ -45,6 +45,28 @@ def test_malformed(tmp_path: Path, arrays, problem):
     assert "bad.npz" in str(error.value)
 
 
+@pytest.mark.parametrize(
+    "arrays,problem",
+    [
+        ({"poses": np.full((3, 72), "0.1"), "trans": np.zeros((3, 3))}, "'poses' holds <U3 values, not numbers"),
+        ({"poses": np.zeros((3, 72)), "trans": np.zeros((3, 3), np.complex64)}, "'trans' holds complex64 values"),
+        ({"poses": np.array([None, None], dtype=object), "trans": np.zeros((2, 3))}, "not a readable .npz motion"),
+    ],
+)
+def test_values_that_are_not_numbers(tmp_path: Path, arrays, problem):
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(InputFileError, match=problem):
+        read_motion(tmp_path / "bad.npz")
+
+
+def test_a_single_npy_array_is_refused(tmp_path: Path):
+    path = tmp_path / "walk.npy"
+    np.save(path, np.zeros((3, 72), np.float32))
+    with pytest.raises(InputFileError, match="single .npy array") as error:
+        read_motion(path)
+    assert "walk.npy" in str(error.value)
+
+
 def test_not_an_npz(tmp_path: Path):
     (tmp_path / "m.npz").write_text("hello")
     with pytest.raises(InputFileError, match="not a readable"):

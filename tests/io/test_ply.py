@@ -172,6 +172,19 @@ def _missing_extra(path: Path) -> Path:
     return write_plain(path, extended, (_comment({"skin_weights": 24}),))
 
 
+def _declares_fewer(path: Path, text: bool = False) -> Path:
+    """5 vertices in the body, a header that declares 3 (as a hand-edited or badly merged file would)."""
+    PlyData([PlyElement.describe(plain_vertices(5, 0), "vertex")], text=text, byte_order="<").write(str(path))
+    path.write_bytes(path.read_bytes().replace(b"element vertex 5", b"element vertex 3", 1))
+    return path
+
+
+def _with_trailing_garbage(path: Path) -> Path:
+    write_gaussians(path, random_gaussians(10, 1))
+    path.write_bytes(path.read_bytes() + b"junk")
+    return path
+
+
 def with_bytes(content: bytes) -> Callable[[Path], Path]:
     def make(path: Path) -> Path:
         path.write_bytes(content)
@@ -216,6 +229,10 @@ MALFORMED = {
         "cannot load PLY body",
     ),
     "two comments": (lambda p: write_plain(p, plain_vertices(3, 0), (_comment({}), _comment({}))), "2 avatarperfect"),
+    # 2 rows of 17 float32 properties left over after the 3 declared vertices
+    "fewer declared (binary)": (_declares_fewer, f"{2 * 17 * 4} bytes after the data its header declares (element vertex 3)"),
+    "fewer declared (ascii)": (lambda p: _declares_fewer(p, text=True), "2 lines after the data its header declares"),
+    "trailing garbage": (_with_trailing_garbage, "4 bytes after the data its header declares (element vertex 10)"),
 }
 
 
@@ -229,3 +246,12 @@ def test_malformed_file_gives_one_line_input_file_error(tmp_path: Path, case: st
     assert "broken_avatar.ply" in message
     assert problem in message
     assert "\n" not in message
+
+
+@pytest.mark.parametrize("text", [False, True])
+def test_a_final_newline_after_the_body_is_accepted(tmp_path: Path, text: bool) -> None:
+    vertices = plain_vertices(4, 0)
+    path = tmp_path / "a.ply"
+    PlyData([PlyElement.describe(vertices, "vertex")], text=text, byte_order="<").write(str(path))
+    path.write_bytes(path.read_bytes() + b"\n")
+    np.testing.assert_allclose(read_gaussians(path).means.numpy(), recfunctions.structured_to_unstructured(vertices[["x", "y", "z"]]), rtol=1e-6)

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import pytest
 
 from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
-from avatarperfect_cli.io.workspace import MANIFEST, new_workspace, open_workspace
+from avatarperfect_cli.io.workspace import MANIFEST, locked_workspace, new_workspace, open_workspace, workspace_lock
 
 
 def test_new_workspace_appears_complete(tmp_path: Path):
@@ -73,3 +74,102 @@ def test_missing_avatar_is_named(tmp_path: Path):
         pass
     with pytest.raises(AvatarPerfectError, match="iteration 3"):
         open_workspace(tmp_path / "ws").require_avatar()
+
+
+def _hold_lock(root: str, ready, release) -> None:
+    from avatarperfect_cli.io.workspace import workspace_lock
+
+    with workspace_lock(Path(root)):
+        ready.set()
+        release.wait(10)
+
+
+def test_second_stage_is_refused_while_the_lock_is_held(tmp_path: Path):
+    import multiprocessing
+
+    context = multiprocessing.get_context("spawn")
+    ready, release = context.Event(), context.Event()
+    holder = context.Process(target=_hold_lock, args=(str(tmp_path / "ws"), ready, release))
+    holder.start()
+    try:
+        assert ready.wait(20)
+        with pytest.raises(AvatarPerfectError, match=f"pid {holder.pid}"):
+            with workspace_lock(tmp_path / "ws"):
+                pass
+    finally:
+        release.set()
+        holder.join(10)
+    with workspace_lock(tmp_path / "ws"):  # released when its process ended
+        pass
+
+
+def test_a_killed_holder_leaves_no_stale_lock(tmp_path: Path):
+    import multiprocessing
+
+    context = multiprocessing.get_context("spawn")
+    ready, release = context.Event(), context.Event()
+    holder = context.Process(target=_hold_lock, args=(str(tmp_path / "ws"), ready, release))
+    holder.start()
+    assert ready.wait(20)
+    holder.kill()
+    holder.join(10)
+    with workspace_lock(tmp_path / "ws"):
+        pass
+
+
+def test_lock_cleans_what_a_killed_stage_left(tmp_path: Path):
+    root = tmp_path / "ws"
+    with new_workspace(root, {"iteration": 0, "history": [{"stage": "train-initial", "avatar": 0}]}) as staged:
+        (staged.root / "avatar").mkdir()
+        (staged.root / "avatar" / "000.ply").write_text("ply")
+    (root / "avatar" / "001.ply").write_text("written but never committed")
+    (root / "avatar" / ".001.tmp-1a2b3c4d.ply").write_text("half")
+    (tmp_path / ".ws.abcd.tmp").mkdir()  # a killed train-initial's staging folder
+    with locked_workspace(root) as workspace:
+        assert workspace.committed_avatars() == {0}
+    assert sorted(p.name for p in (root / "avatar").iterdir()) == ["000.ply"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".ws.lock", "ws"]
+
+
+def test_a_retired_workspace_is_put_back(tmp_path: Path):
+    """A crash between the two renames of the fallback replace leaves the old workspace retired."""
+    root = tmp_path / "ws"
+    with new_workspace(root, {"iteration": 0, "tag": "old"}):
+        pass
+    os.replace(root, tmp_path / ".ws.retired.tmp")
+    with locked_workspace(root) as workspace:
+        assert workspace.manifest["tag"] == "old"
+
+
+def test_force_swaps_in_one_step(tmp_path: Path, monkeypatch):
+    """With --force the old workspace is exchanged for the new one: at no moment is the path missing."""
+    from avatarperfect_cli.io import atomic
+
+    root = tmp_path / "ws"
+    with new_workspace(root, {"iteration": 0, "tag": "old"}):
+        pass
+    seen = []
+    exchange = atomic._exchange
+
+    def watched(first: Path, second: Path) -> bool:
+        swapped = exchange(first, second)
+        seen.append((swapped, json.loads((root / MANIFEST).read_text())["tag"]))
+        return swapped
+
+    monkeypatch.setattr(atomic, "_exchange", watched)
+    with new_workspace(root, {"iteration": 0, "tag": "new"}, force=True):
+        pass
+    assert seen == [(True, "new")]
+    assert open_workspace(root).manifest["tag"] == "new"
+    assert [p.name for p in tmp_path.iterdir()] == ["ws"]
+
+
+def test_numbered_folders_count_up_and_skip_staging(tmp_path: Path):
+    with new_workspace(tmp_path / "ws", {"iteration": 0}):
+        pass
+    workspace = open_workspace(tmp_path / "ws")
+    assert workspace.next_numbered_folder("edits").name == "001"
+    (workspace.root / "edits" / "002").mkdir(parents=True)
+    (workspace.root / "edits" / ".003.x.tmp").mkdir()
+    assert [p.name for p in workspace.numbered_folders("edits")] == ["002"]
+    assert workspace.next_numbered_folder("edits").name == "003"

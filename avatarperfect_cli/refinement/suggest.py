@@ -1,0 +1,249 @@
+"""Body and camera pose suggestion (paper §6.2): show the user what the video saw least.
+
+Minimises  sum_i clip(V_i - mean V) * sigma(G, D(z), tau)_i  over a latent body pose z (decoded by a
+natural-pose prior D) and an orbit camera tau = (azimuth, elevation) around the posed body. The sum
+is the sum of a one-channel image whose per-Gaussian colour is clip(V_i - mean V) (the weight image),
+so it is differentiable through the rasterizer; the camera enters as a rigid transform of the posed
+Gaussians (the rasterizer's camera itself carries no gradient), which is the same image.
+
+The camera keeps the dataset camera's intrinsics and up direction; azimuth 0 / elevation 0 is the
+dataset camera's own viewing direction. Its distance is set from the posed body each step so that the
+whole body fits in `fill` of the image: the objective cannot be won by zooming in.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import torch
+
+from avatarperfect_cli.avatar.model import Avatar
+from avatarperfect_cli.body import forward_kinematics
+from avatarperfect_cli.io.pose_json import PoseFile
+from avatarperfect_cli.refinement.collision import BodyCapsules
+from avatarperfect_cli.refinement.pose_prior import PosePrior
+from avatarperfect_cli.refinement.visibility import suggestion_weights
+from avatarperfect_cli.render import Camera, rasterization
+from avatarperfect_cli.render.camera import framing_distance, rotation_about
+
+BODY_POSE_MODES = ("optimise", "canonical", "random")
+
+
+@dataclass
+class SuggestConfig:
+    """Settings of one suggestion.
+
+    body_pose:   "optimise" (z and camera), "canonical" (the training pose, camera only: the paper's
+                 baseline) or "random" (a random natural pose and camera, no optimisation: the control)
+    starts:      optimisation starts, the best kept; chosen as the best of `candidates` random
+                 cameras (and, when optimising the pose, random natural poses), scored forward only
+    steps:       Adam steps per start
+    resolution:  longest image side while optimising, pixels (the result is rendered at full size)
+    fill:        share of the image the posed body may span
+    max_elevation_deg: the camera stays within this angle above or below the dataset camera's horizon
+    min_separation_deg: a start must look from at least this far from earlier suggestions' cameras
+    """
+
+    body_pose: str = "optimise"
+    starts: int = 3
+    candidates: int = 24
+    steps: int = 30
+    resolution: int = 128
+    fill: float = 0.9
+    max_elevation_deg: float = 60.0
+    min_separation_deg: float = 30.0
+    latent_learning_rate: float = 0.12
+    angle_learning_rate: float = 0.06
+    collision_weight: float = 1e4
+    seed: int = 0
+
+
+@dataclass
+class Suggestion:
+    """A suggested view: the pose JSON's content plus how it was found.
+
+    pose:      body_pose (24, 3), transl (3,) and the full-size camera
+    latent:    (32,) z of the body pose
+    azimuth, elevation: orbit angles, radians, relative to the dataset camera
+    objective: sum_i clip(V_i - mean V) * sigma_i at full size (lower shows more of the barely seen)
+    """
+
+    pose: PoseFile
+    latent: torch.Tensor
+    azimuth: float
+    elevation: float
+    objective: float
+
+
+class OrbitView:
+    """Poses the avatar by a latent z and views it from orbit angles, with automatic framing.
+
+    reference: the training pose (its body_pose's global orientation and its transl are kept) and the
+    dataset camera (intrinsics, up direction, azimuth 0).
+    """
+
+    def __init__(self, avatar: Avatar, prior: PosePrior, reference: PoseFile, fill: float) -> None:
+        self.avatar, self.prior, self.reference, self.fill = avatar, prior, reference, fill
+        rotation = reference.camera.world_to_camera[:3, :3].float()
+        self.base_rotation = rotation
+        self.right, self.up, self.forward = rotation[0], -rotation[1], rotation[2]
+
+    def body_pose(self, latent: torch.Tensor) -> torch.Tensor:
+        return self.prior.decode(latent[None])[0]
+
+    def orbit(self, azimuth: torch.Tensor, elevation: torch.Tensor) -> torch.Tensor:
+        """(3, 3) world rotation of the camera: tilt by `elevation` (positive: from above), then turn by
+        `azimuth` about the up axis."""
+        return rotation_about(self.up, azimuth) @ rotation_about(self.right, -elevation)
+
+    def render(
+        self, latent: torch.Tensor, azimuth: torch.Tensor, elevation: torch.Tensor, camera: Camera, colors: torch.Tensor
+    ) -> tuple[torch.Tensor, PoseFile]:
+        """The (H, W, C) image of per-Gaussian `colors` (N, C) on black, and the pose file of the view.
+
+        Differentiable w.r.t. latent and the angles. `camera` gives the intrinsics and size.
+        """
+        body_pose = self.body_pose(latent)
+        transl = self.reference.transl
+        center = self._body_center(body_pose.detach(), transl)
+        orbit = self.orbit(azimuth, elevation)
+        world = torch.eye(4)
+        world[:3, :3] = orbit.T  # turning the body by orbit^T = turning the camera by orbit
+        world[:3, 3] = center - orbit.T @ center
+        means, quats = self.avatar.pose(body_pose, transl, world)
+        distance = framing_distance(means - center, self.base_rotation, camera.K, camera.width, camera.height, self.fill)
+        base = self._camera(center, distance, camera)
+        out = rasterization(means, quats, self.avatar.scales, self.avatar.opacities, colors, base)
+        with torch.no_grad():
+            view_rotation = self.base_rotation @ orbit.detach().T
+            eye = center + orbit.detach() @ (base.center.float() - center)
+            view = torch.eye(4)
+            view[:3, :3] = view_rotation
+            view[:3, 3] = -view_rotation @ eye
+        pose = PoseFile(body_pose.detach().clone(), transl.clone(), Camera(camera.K, view, camera.width, camera.height))
+        return out.image, pose
+
+    def _body_center(self, body_pose: torch.Tensor, transl: torch.Tensor) -> torch.Tensor:
+        """(3,) centre of the posed joints' bounding box, metres."""
+        transforms = forward_kinematics(body_pose[None], self.avatar.rest_joints, transl[None])[0]
+        joints = (transforms[:, :3, :3] @ self.avatar.rest_joints[:, :, None])[..., 0] + transforms[:, :3, 3]
+        return 0.5 * (joints.min(dim=0).values + joints.max(dim=0).values)
+
+    def _camera(self, center: torch.Tensor, distance: float, camera: Camera) -> Camera:
+        eye = center - distance * self.forward
+        view = torch.eye(4)
+        view[:3, :3] = self.base_rotation
+        view[:3, 3] = -self.base_rotation @ eye
+        return Camera(camera.K.float(), view, camera.width, camera.height)
+
+
+def _angle_between_views(first: Camera, second: Camera) -> float:
+    """Angle, degrees, between two cameras' viewing directions."""
+    cosine = float(first.world_to_camera[2, :3].double() @ second.world_to_camera[2, :3].double())
+    return math.degrees(math.acos(max(-1.0, min(1.0, cosine))))
+
+
+def suggest_view(
+    avatar: Avatar,
+    visibility: torch.Tensor,
+    prior: PosePrior,
+    capsules: BodyCapsules,
+    reference: PoseFile,
+    config: SuggestConfig | None = None,
+    earlier: Sequence[PoseFile] = (),
+    on_step: Callable[[], None] = lambda: None,
+) -> Suggestion:
+    """The body pose and camera that best show the Gaussians the video saw least.
+
+    visibility: (N,) accumulated V; reference: training pose + dataset camera (full size);
+    earlier: pose files of earlier suggestions (their cameras are avoided by `min_separation_deg`);
+    on_step: called once per optimisation step (progress).
+    """
+    config = config or SuggestConfig()
+    if config.body_pose not in BODY_POSE_MODES:
+        raise ValueError(f"body_pose must be one of {BODY_POSE_MODES}, got {config.body_pose!r}")
+    generator = torch.Generator().manual_seed(config.seed)
+    view = OrbitView(avatar, prior, reference, config.fill)
+    full = reference.camera
+    small = full.scaled(min(1.0, config.resolution / max(full.width, full.height)))
+    weights = suggestion_weights(visibility).float()[:, None]
+    scale = float(weights.abs().max()) or 1.0
+    weights = weights / scale
+
+    def objective(latent: torch.Tensor, azimuth: torch.Tensor, elevation: torch.Tensor, camera: Camera):
+        image, pose = view.render(latent, azimuth, elevation, camera, weights)
+        return image.sum() * (full.width / camera.width) ** 2, pose
+
+    max_elevation = math.radians(config.max_elevation_deg)
+
+    def random_camera() -> tuple[float, float]:
+        azimuth = 2 * math.pi * float(torch.rand((), generator=generator))
+        sine = math.sin(max_elevation) * (2 * float(torch.rand((), generator=generator)) - 1)  # uniform on the band
+        return azimuth, math.asin(sine)
+
+    def random_natural_latent() -> torch.Tensor:
+        for _ in range(20):
+            latent = prior.sample_latent(generator)
+            if not capsules.intersecting_pairs(view.body_pose(latent).detach()):
+                return latent
+        return prior.initial_latent()
+
+    canonical = prior.initial_latent()
+    if config.body_pose == "random":
+        latent = random_natural_latent()
+        azimuth, elevation = random_camera()
+        return _finish(view, latent, azimuth, elevation, full, objective)
+
+    candidates = []
+    with torch.no_grad():
+        for index in range(config.candidates):
+            azimuth, elevation = random_camera()
+            optimise_pose = config.body_pose == "optimise" and index % 2 == 1
+            latent = random_natural_latent() if optimise_pose else canonical.clone()
+            value, pose = objective(latent, torch.tensor(azimuth), torch.tensor(elevation), small)
+            separated = all(_angle_between_views(pose.camera, e.camera) >= config.min_separation_deg for e in earlier)
+            candidates.append((not separated, float(value), latent, azimuth, elevation))
+    candidates.sort(key=lambda c: (c[0], c[1]))
+
+    best: tuple[float, torch.Tensor, float, float] | None = None
+    for _, start_value, latent, azimuth, elevation in candidates[: config.starts]:
+        result = _optimise(view, capsules, objective, latent, azimuth, elevation, small, config, max_elevation, on_step)
+        result = result or (start_value, latent, azimuth, elevation)
+        if best is None or result[0] < best[0]:
+            best = result
+    assert best is not None
+    return _finish(view, best[1], best[2], best[3], full, objective)
+
+
+def _optimise(view, capsules, objective, latent, azimuth, elevation, camera, config, max_elevation, on_step):
+    """Adam on (z, azimuth, elevation) from one start; the best collision-free iterate
+    (objective, latent, azimuth, elevation), or None when none was collision-free."""
+    latent = latent.clone().requires_grad_(config.body_pose == "optimise")
+    angles = torch.tensor([azimuth, elevation], requires_grad=True)
+    groups = [{"params": [angles], "lr": config.angle_learning_rate}]
+    if config.body_pose == "optimise":
+        groups.append({"params": [latent], "lr": config.latent_learning_rate})
+    optimizer = torch.optim.Adam(groups)
+    best = None
+    for _ in range(config.steps):
+        value, _ = objective(latent, angles[0], angles[1], camera)
+        penalty = capsules.penetration(view.body_pose(latent)[None])[0]
+        current = float(value.detach())
+        if float(penalty.detach()) == 0.0 and (best is None or current < best[0]):
+            best = (current, latent.detach().clone(), float(angles[0].detach()), float(angles[1].detach()))
+        optimizer.zero_grad(set_to_none=True)
+        loss = value / camera.width / camera.height + config.collision_weight * penalty
+        loss.backward()
+        optimizer.step()
+        with torch.no_grad():
+            angles[1].clamp_(-max_elevation, max_elevation)
+        on_step()
+    return best
+
+
+def _finish(view: OrbitView, latent, azimuth: float, elevation: float, camera: Camera, objective) -> Suggestion:
+    with torch.no_grad():
+        value, pose = objective(latent, torch.tensor(azimuth), torch.tensor(elevation), camera)
+    return Suggestion(pose, latent.detach().clone(), azimuth % (2 * math.pi), elevation, float(value))

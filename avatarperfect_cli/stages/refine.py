@@ -1,0 +1,107 @@
+"""The `refine` stage (paper §6.3): re-optimise the avatar on the video plus every registered edit.
+
+First the background tool takes effect: the Gaussians whose projected centres fall in an edit's
+background region, in that edit's pose, are deleted (once per edit: the edits an avatar iteration has
+applied are recorded in its history entry). Then training continues on the video frames and the
+edits (an edit drawn with probability `edit_probability`, its loss masked by M_k; background pixels
+of an edit supervise towards the step's random background colour, so Gaussians there must vanish).
+Skinning weights learn from step 0: floaters at the armpits and crotch come from wrong skinning.
+
+The new avatar is written as ws/avatar/NNN.ply (NNN one past the highest iteration so far) and then
+committed by the manifest; every earlier iteration stays. `revert` makes an earlier one current.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from rich.console import Console
+
+from avatarperfect_cli.avatar.model import Avatar
+from avatarperfect_cli.errors import AvatarPerfectError
+from avatarperfect_cli.io.workspace import locked_workspace
+from avatarperfect_cli.refinement.erase import centres_in_region, delete_gaussians
+from avatarperfect_cli.stages.workspace_data import RegisteredEdit, applied_edits, load_video, registered_edits
+from avatarperfect_cli.training.trainer import TrainConfig, train, video_views
+
+
+@dataclass
+class RefineSettings:
+    """iterations: training steps (the paper: 500); edit_probability: share of steps that draw an edit (0.3)."""
+
+    iterations: int = 500
+    edit_probability: float = 0.3
+    seed: int = 0
+
+
+def delete_background(avatar: Avatar, edits: list[RegisteredEdit]) -> tuple[Avatar, int]:
+    """Delete the Gaussians whose centres fall in any of the edits' background regions; (avatar, count)."""
+    delete = torch.zeros(len(avatar), dtype=torch.bool)
+    for edit in edits:
+        delete |= centres_in_region(avatar, edit.pose, edit.background())
+    return delete_gaussians(avatar, delete), int(delete.sum())
+
+
+def refine_config(settings: RefineSettings) -> TrainConfig:
+    """The training settings of a refinement run: GART's rates over `iterations`, skinning from step 0."""
+    config = TrainConfig(iterations=settings.iterations, seed=settings.seed, edit_probability=settings.edit_probability)
+    config.learning_rates.total_steps = settings.iterations
+    config.learning_rates.skin_start = 0
+    return config
+
+
+def refine(workspace_root: Path, settings: RefineSettings | None = None, progress: bool = True) -> Path:
+    """Refine the current avatar on the video and every registered edit; returns the new avatar's path."""
+    settings = settings or RefineSettings()
+    if settings.iterations < 1:
+        raise AvatarPerfectError(f"--iterations must be at least 1, got {settings.iterations}")
+    if not 0.0 <= settings.edit_probability <= 1.0:
+        raise AvatarPerfectError(f"--edit-probability must be in [0, 1], got {settings.edit_probability}")
+    console = Console(stderr=True, quiet=not progress)
+    with locked_workspace(workspace_root) as workspace:
+        start = time.perf_counter()
+        avatar = Avatar.load(workspace.require_avatar())
+        edits = registered_edits(workspace)
+        done = set(applied_edits(workspace))
+        avatar, deleted = delete_background(avatar, [edit for edit in edits if edit.number not in done])
+        video = load_video(workspace)
+        console.print(
+            f"refining avatar {workspace.iteration:03d} ({len(avatar):,} Gaussians after deleting {deleted:,}) "
+            f"on {len(video)} frames and {len(edits)} edits"
+        )
+        edit_views = [edit.training_view() for edit in edits]
+        train(avatar, video_views(video), edit_views, refine_config(settings), progress=progress)
+        iteration = max(workspace.committed_avatars()) + 1
+        path = workspace.avatar_path(iteration)
+        avatar.save(path)
+        seconds = time.perf_counter() - start
+        workspace.commit(
+            {
+                "stage": "refine",
+                "avatar": iteration,
+                "from": workspace.iteration,
+                "edits": [edit.number for edit in edits],
+                "applied_edits": sorted(done | {edit.number for edit in edits}),
+                "deleted": deleted,
+                "iterations": settings.iterations,
+                "edit_probability": settings.edit_probability,
+                "seed": settings.seed,
+                "seconds": round(seconds, 1),
+                "gaussians": len(avatar),
+            },
+            iteration,
+        )
+    console.print(f"wrote {path} ({len(avatar):,} Gaussians, {seconds:.0f} s)")
+    return path
+
+
+def revert(workspace_root: Path, iteration: int) -> None:
+    """Make avatar `iteration` current again; later iterations stay on disk and in the history."""
+    with locked_workspace(workspace_root) as workspace:
+        if iteration not in workspace.committed_avatars():
+            raise AvatarPerfectError(f"{workspace_root}: no avatar iteration {iteration}")
+        workspace.require_avatar(iteration)
+        workspace.commit({"stage": "revert", "to": iteration}, iteration)

@@ -1,0 +1,55 @@
+"""The `simulate-user` stage: paint the latest suggestion as a careful person would, for synthetic subjects.
+
+The subject's exact appearance in the suggested pose is rendered by the sample module; the simulated
+user (`sample.simulated_user`) paints white over what should be background and the true colours (or
+each blob's mean colour) over what is wrong, within a budget. The result is an ordinary edited PNG
+for `apply-edit`, written as ws/suggestions/NNN/simulated_edit.png unless another path is given.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+from rich.console import Console
+
+from avatarperfect_cli.io import atomic_write_text, read_image, read_pose, write_image
+from avatarperfect_cli.io.workspace import locked_workspace
+from avatarperfect_cli.sample.simulated_user import PaintResult, UserConfig, paint
+from avatarperfect_cli.sample.subject import SyntheticSubject
+from avatarperfect_cli.stages.workspace_data import latest_suggestion
+
+SIMULATED_EDIT = "simulated_edit.png"
+
+
+def subject_folder(folder: Path) -> Path:
+    """A make-sample folder given as SAMPLE/ (its train/ split is used) or as one of its splits."""
+    folder = Path(folder)
+    if not (folder / "subject.json").is_file() and (folder / "train" / "subject.json").is_file():
+        return folder / "train"
+    return folder
+
+
+def simulate_user(
+    workspace_root: Path, subject: Path | None = None, config: UserConfig | None = None,
+    output: Path | None = None, progress: bool = True,
+) -> PaintResult:  # fmt: skip
+    """Paint the workspace's latest suggestion; `subject` defaults to the workspace's own dataset."""
+    config = config or UserConfig()
+    with locked_workspace(workspace_root) as workspace:
+        folder = latest_suggestion(workspace)
+        source = subject_folder(subject) if subject is not None else Path(str(workspace.manifest.get("dataset", "")))
+        truth_model = SyntheticSubject.from_dataset(source)
+        pose = read_pose(folder / "pose.json")
+        suggested = read_image(folder / "suggested.png", "RGB")
+        alpha = read_image(folder / "suggested_alpha.png", "L")[..., 0]
+        result = paint(suggested, alpha, truth_model.render(pose.body_pose, pose.transl, pose.camera), config)
+        path = output or folder / SIMULATED_EDIT
+        write_image(path, result.image)
+        atomic_write_text(Path(path).with_suffix(".json"), json.dumps(asdict(result.stats), indent=2) + "\n")
+    stats = result.stats
+    Console(stderr=True, quiet=not progress).print(
+        f"painted {stats.painted_pixels:,} pixels ({100 * stats.budget_used:.0f}% of the budget) into {path}"
+    )
+    return result

@@ -1,0 +1,117 @@
+"""The `visibility` stage: accumulated per-Gaussian visibility V of the current avatar iteration.
+
+Writes ws/visibility/NNN.npz (NNN = avatar iteration) holding
+    visibility  (N,) float64 V, pixels per view
+    mean        V's mean
+    frames      video frames accumulated;  edits: the edit folders accumulated (names)
+    edit_weight w;  iteration: the avatar iteration;  gaussians: N
+and ws/visibility/NNN.png, the canonical avatar coloured by V.
+"""
+
+from __future__ import annotations
+
+import io
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from rich.console import Console
+from rich.progress import track
+
+from avatarperfect_cli.avatar.model import Avatar
+from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
+from avatarperfect_cli.io import atomic_write_bytes
+from avatarperfect_cli.io.workspace import Workspace, locked_workspace
+from avatarperfect_cli.refinement.pictures import visibility_picture
+from avatarperfect_cli.refinement.visibility import DEFAULT_EDIT_WEIGHT, combine_visibility, gaussian_visibility
+from avatarperfect_cli.stages.workspace_data import registered_edits, video_poses
+
+VISIBILITY = "visibility"
+
+
+@dataclass
+class VisibilityRecord:
+    """The content of ws/visibility/NNN.npz (see the module doc)."""
+
+    visibility: torch.Tensor
+    frames: int
+    edits: list[str]
+    edit_weight: float
+    iteration: int
+
+    def matches(self, iteration: int, edits: list[str], edit_weight: float, gaussians: int) -> bool:
+        return (self.iteration, self.edits, self.edit_weight, len(self.visibility)) == (iteration, edits, edit_weight, gaussians)
+
+
+def visibility_path(workspace: Workspace, iteration: int | None = None) -> Path:
+    return workspace.root / VISIBILITY / f"{workspace.iteration if iteration is None else iteration:03d}.npz"
+
+
+def read_visibility(path: Path, iteration: int) -> VisibilityRecord:
+    """Read a visibility file; one line when it is unreadable or belongs to another avatar iteration."""
+    try:
+        with np.load(path) as data:
+            record = VisibilityRecord(
+                torch.from_numpy(data["visibility"].astype(np.float64)), int(data["frames"]),
+                [str(name) for name in data["edits"]], float(data["edit_weight"]), int(data["iteration"]),
+            )  # fmt: skip
+    except (OSError, KeyError, ValueError, TypeError) as error:
+        raise InputFileError(path, f"not a visibility file ({error}); delete it and run 'avatarperfect visibility'") from None
+    if record.iteration != iteration:
+        raise InputFileError(path, f"belongs to avatar iteration {record.iteration}, not {iteration}; delete it")
+    if record.visibility.ndim != 1 or not torch.isfinite(record.visibility).all():
+        raise InputFileError(path, "visibility is not a finite (N,) array; delete it")
+    return record
+
+
+def compute_visibility(workspace: Workspace, avatar: Avatar, edit_weight: float, progress: bool) -> VisibilityRecord:
+    """V of `avatar` over the workspace's video and registered edits; writes the .npz and the picture."""
+    if not 0.0 <= edit_weight <= 1.0:
+        raise AvatarPerfectError(f"--edit-weight must be in [0, 1], got {edit_weight}")
+    views = video_poses(workspace)
+    edits = registered_edits(workspace)
+    console = Console(stderr=True, quiet=not progress)
+    start = time.perf_counter()
+    total = torch.zeros(len(avatar), dtype=torch.float64)
+    for view in track(views, description="visibility", console=console, disable=not progress):
+        total += gaussian_visibility(avatar, view)
+    edit_mean = None
+    if edits:
+        edit_mean = sum(gaussian_visibility(avatar, edit.pose) for edit in edits) / len(edits)
+    visibility = combine_visibility(total / len(views), edit_mean, edit_weight)
+    record = VisibilityRecord(visibility, len(views), [edit.folder.name for edit in edits], edit_weight, workspace.iteration)
+    path = visibility_path(workspace)
+    buffer = io.BytesIO()
+    np.savez(
+        buffer, visibility=visibility.numpy(), mean=float(visibility.mean()), frames=len(views), edits=np.array(record.edits, dtype=str),
+        edit_weight=edit_weight, iteration=workspace.iteration, gaussians=len(avatar),
+    )  # fmt: skip
+    title = f"avatar {workspace.iteration:03d}: visibility over {len(views)} frames and {len(edits)} edits"
+    picture = visibility_picture(avatar, visibility, title)
+    atomic_write_bytes(path, buffer.getvalue())
+    atomic_write_bytes(path.with_suffix(".png"), picture)
+    console.print(f"wrote {path} and {path.with_suffix('.png').name} ({time.perf_counter() - start:.1f} s)")
+    return record
+
+
+def current_visibility(workspace: Workspace, avatar: Avatar, edit_weight: float, progress: bool) -> VisibilityRecord:
+    """The stored V of the current iteration if it is up to date (same edits and weight), else computed anew."""
+    path = visibility_path(workspace)
+    if path.is_file():
+        record = read_visibility(path, workspace.iteration)
+        edits = [edit.folder.name for edit in registered_edits(workspace)]
+        if record.matches(workspace.iteration, edits, edit_weight, len(avatar)):
+            return record
+        if len(record.visibility) != len(avatar):
+            raise InputFileError(path, f"holds {len(record.visibility)} values for {len(avatar)} Gaussians; delete it")
+    return compute_visibility(workspace, avatar, edit_weight, progress)
+
+
+def visibility(workspace_root: Path, edit_weight: float = DEFAULT_EDIT_WEIGHT, progress: bool = True) -> Path:
+    """Compute V for the workspace's current avatar and write ws/visibility/NNN.npz (+ .png); returns its path."""
+    with locked_workspace(workspace_root) as workspace:
+        avatar = Avatar.load(workspace.require_avatar())
+        compute_visibility(workspace, avatar, edit_weight, progress)
+        return visibility_path(workspace)

@@ -1,0 +1,309 @@
+"""Pose and camera suggestion: the orbit geometry, the objective's gradient against finite differences, and
+`suggest_view` end to end on a small template avatar."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from avatarperfect_cli.avatar.model import Avatar, vertex_normals_and_areas
+from avatarperfect_cli.avatar.rendering import render_avatar
+from avatarperfect_cli.body import forward_kinematics, load_body_template
+from avatarperfect_cli.gaussians import sh_to_rgb
+from avatarperfect_cli.io.pose_json import PoseFile
+from avatarperfect_cli.refinement import suggest
+from avatarperfect_cli.refinement.collision import BodyCapsules
+from avatarperfect_cli.refinement.pose_prior import BuiltinPosePrior, joint_limit_violations, load_pose_prior
+from avatarperfect_cli.refinement.suggest import OrbitView, SuggestConfig, suggest_view
+from avatarperfect_cli.refinement.visibility import gaussian_visibility, suggestion_weights
+from avatarperfect_cli.sample.generate import fit_camera
+from avatarperfect_cli.sample.motions import turntable
+
+REFERENCE_POSE = torch.as_tensor(turntable(1).body_pose[0]).float()  # the sample video's A-pose, facing +Z
+REFERENCE_TRANSL = torch.tensor([0.05, 0.9, -0.1])
+UP = torch.tensor([0.0, 1.0, 0.0])
+
+
+def template_avatar(every: int, scale: float, opacity: float | None = None, seed: int = 0) -> Avatar:
+    """Every `every`-th Gaussian of the anny template avatar, `scale` times larger, random colours."""
+    template = load_body_template("anny")
+    full = Avatar.from_template(template, sh_degree=0)
+    params = {name: param.detach()[::every].clone() for name, param in full.params.items()}
+    params["log_scales"] += math.log(scale)
+    if opacity is not None:
+        params["opacity_logits"].fill_(math.log(opacity / (1 - opacity)))
+    params["sh_dc"] = torch.randn(params["sh_dc"].shape, generator=torch.Generator().manual_seed(seed))
+    return Avatar(params, full.rest_joints, sh_degree=0)
+
+
+def reference_view(avatar: Avatar, size: int) -> PoseFile:
+    """The training pose seen by the sample's camera (in front of the body, on +Z, looking horizontally)."""
+    means, _ = avatar.pose(REFERENCE_POSE, REFERENCE_TRANSL)
+    return PoseFile(REFERENCE_POSE, REFERENCE_TRANSL, fit_camera(means.detach().double().numpy(), size))
+
+
+def back_is_unseen(every: int) -> torch.Tensor:
+    """(N,) float64 V: 1 for the Gaussians on the front of the body (canonical normal towards +Z), 0 on the back."""
+    template = load_body_template("anny")
+    normals, _ = vertex_normals_and_areas(template.vertices.float(), template.faces.long())
+    return (normals[::every, 2] > 0).double()
+
+
+def joints_box_centre(avatar: Avatar, body_pose: torch.Tensor, transl: torch.Tensor) -> torch.Tensor:
+    """(3,) float64 centre of the posed joints' bounding box (what the orbit turns about), metres."""
+    transforms = forward_kinematics(body_pose[None].double(), avatar.rest_joints.double(), transl[None].double())[0]
+    joints = transforms[:, :3, 3] + (transforms[:, :3, :3] @ avatar.rest_joints.double()[:, :, None])[..., 0]
+    return 0.5 * (joints.min(dim=0).values + joints.max(dim=0).values)
+
+
+def frozen_framing(monkeypatch: pytest.MonkeyPatch, view: OrbitView, latent: torch.Tensor, angles) -> None:
+    """Hold the framing distance and the orbit centre at their values at (latent, angles).
+
+    `render` recomputes both from the posed body without gradient (the camera follows the body), so the
+    optimiser's gradient treats them as constants; finite differences must do the same to be comparable.
+    """
+    distances: list[float] = []
+    original = suggest.framing_distance
+
+    def recording(*args) -> float:
+        distances.append(original(*args))
+        return distances[-1]
+
+    monkeypatch.setattr(suggest, "framing_distance", recording)
+    with torch.no_grad():
+        view.render(latent, *angles, view.reference.camera, torch.zeros(len(view.avatar), 1))
+        centre = view._body_center(view.body_pose(latent), view.reference.transl)
+    monkeypatch.setattr(suggest, "framing_distance", lambda *args: distances[0])
+    monkeypatch.setattr(OrbitView, "_body_center", lambda self, body_pose, transl: centre)
+
+
+# ---------------------------------------------------------------- orbit geometry
+
+
+@pytest.fixture(scope="module")
+def small_avatar() -> Avatar:
+    return template_avatar(every=8, scale=2.5)
+
+
+@pytest.mark.parametrize("azimuth_deg,elevation_deg", [(0.0, 0.0), (130.0, 35.0), (-60.0, -40.0)])
+def test_orbit_pose_file_camera_renders_the_same_image(small_avatar: Avatar, azimuth_deg, elevation_deg) -> None:
+    avatar = small_avatar
+    reference = reference_view(avatar, 48)
+    prior = load_pose_prior("builtin", REFERENCE_POSE)
+    view = OrbitView(avatar, prior, reference, fill=0.9)
+    latent = 0.7 * torch.randn(32, generator=torch.Generator().manual_seed(1))
+    azimuth, elevation = torch.tensor(math.radians(azimuth_deg)), torch.tensor(math.radians(elevation_deg))
+    colors = sh_to_rgb(avatar.params["sh_dc"].detach()[:, 0]).clamp_min(0.0)  # SH degree 0: view-independent
+    with torch.no_grad():
+        image, pose = view.render(latent, azimuth, elevation, reference.camera, colors)
+        direct = render_avatar(avatar, pose.body_pose, pose.transl, pose.camera, torch.zeros(3)).image
+        at_reference = render_avatar(avatar, pose.body_pose, pose.transl, reference.camera, torch.zeros(3)).image
+    assert torch.equal(pose.body_pose, view.body_pose(latent)) and torch.equal(pose.transl, REFERENCE_TRANSL)
+    assert torch.equal(pose.camera.K, reference.camera.K) and (pose.camera.width, pose.camera.height) == (48, 48)
+    assert image.abs().sum() > 100.0
+    torch.testing.assert_close(direct, image, rtol=0, atol=2e-4)
+    assert (at_reference - image).abs().max() > 0.2, "the reference camera must not render the orbit image"
+
+    # where the camera is: turned by the azimuth about +Y from the reference's bearing (+Z), raised by the elevation
+    centre = joints_box_centre(avatar, pose.body_pose, pose.transl)
+    offset = pose.camera.center.double() - centre
+    distance = float(offset.norm())
+    assert math.degrees(math.asin(float(offset[1]) / distance)) == pytest.approx(elevation_deg, abs=0.01)
+    bearing = math.degrees(math.atan2(float(offset[0]), float(offset[2])))
+    assert (bearing - azimuth_deg + 180.0) % 360.0 - 180.0 == pytest.approx(0.0, abs=0.01)
+    # it looks at the centre, keeping the reference's up direction level (no roll)
+    rotation = pose.camera.world_to_camera[:3, :3].double()
+    torch.testing.assert_close(rotation[2], -offset / distance, rtol=0, atol=1e-5)
+    assert abs(float(rotation[0] @ UP.double())) < 1e-5
+
+    # framing: every posed centre projects inside the image, and the widest spans `fill` of it
+    means, _ = avatar.pose(pose.body_pose, pose.transl)
+    local = means.detach().double() @ rotation.T + pose.camera.world_to_camera[:3, 3].double()
+    assert (local[:, 2] > 0.05).all()
+    K = pose.camera.K.double()
+    u = K[0, 0] * local[:, 0] / local[:, 2] + K[0, 2]
+    v = K[1, 1] * local[:, 1] / local[:, 2] + K[1, 2]
+    assert ((u >= 0) & (u <= 48) & (v >= 0) & (v <= 48)).all()
+    reach = torch.stack([(u - K[0, 2]) / K[0, 2], (v - K[1, 2]) / K[1, 2]]).abs().max()
+    assert float(reach) == pytest.approx(0.9, abs=1e-3)
+
+
+# ---------------------------------------------------------------- gradients
+
+
+def test_objective_gradient_is_the_chain_rule_through_the_posed_gaussians(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The autograd gradient w.r.t. every latent component and both angles equals (d objective / d posed
+    means, quats) . (finite-difference d posed means, quats / d parameter): the orbit, world transform,
+    decoder and skinning contribute every term with the right sign (the rasterizer's own gradient is
+    checked against the dense reference in tests/render)."""
+    avatar = template_avatar(every=4, scale=1.0)
+    reference = reference_view(avatar, 40)
+    view = OrbitView(avatar, BuiltinPosePrior(REFERENCE_POSE), reference, fill=0.9)
+    weights = suggestion_weights(back_is_unseen(every=4)).float()[:, None]
+    latent0 = 0.5 * torch.randn(32, generator=torch.Generator().manual_seed(2))
+    angles0 = (torch.tensor(2.2), torch.tensor(0.3))
+    frozen_framing(monkeypatch, view, latent0, angles0)
+    captured: list[tuple] = []  # the arguments of every rasterization call inside `render`
+    original = suggest.rasterization
+
+    def recording(*args, **kwargs):
+        captured.append(args)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(suggest, "rasterization", recording)
+
+    latent, azimuth, elevation = latent0.clone().requires_grad_(), *(a.clone().requires_grad_() for a in angles0)
+    image, _ = view.render(latent, azimuth, elevation, reference.camera, weights)
+    image.sum().backward()
+    autograd = torch.cat([latent.grad, azimuth.grad[None], elevation.grad[None]]).double()
+
+    means, quats, scales, opacities, _, camera = captured[0]
+    means, quats = means.detach().requires_grad_(), quats.detach().requires_grad_()
+    out = original(means, quats, scales.detach(), opacities.detach(), weights, camera)
+    grad_means, grad_quats = torch.autograd.grad(out.image.sum(), [means, quats])
+
+    def posed(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        captured.clear()
+        with torch.no_grad():
+            view.render(x[:32], x[32], x[33], reference.camera, weights)
+        return captured[0][0].double(), captured[0][1].double()
+
+    x0 = torch.cat([latent0, torch.stack(angles0)])
+    step = 1e-3
+    chain = torch.zeros(34, dtype=torch.float64)
+    for k in range(34):
+        shift = torch.zeros(34)
+        shift[k] = step
+        (means_plus, quats_plus), (means_minus, quats_minus) = posed(x0 + shift), posed(x0 - shift)
+        chain[k] = (grad_means.double() * (means_plus - means_minus)).sum() / (2 * step)
+        chain[k] += (grad_quats.double() * (quats_plus - quats_minus)).sum() / (2 * step)
+    scale = float(chain.abs().max())
+    assert (chain.abs() > 0.05 * scale).sum() >= 10, "many components should matter"
+    torch.testing.assert_close(autograd, chain, rtol=1e-2, atol=2e-3 * scale)
+
+
+def test_objective_gradient_matches_finite_differences(monkeypatch: pytest.MonkeyPatch) -> None:
+    """End to end: autograd d objective / d (z_k, azimuth, elevation) against finite differences of the rendered
+    objective, on a smooth scene (few large Gaussians).
+
+    A 3DGS image jumps where two overlapping Gaussians swap depth order or a footprint crosses alpha = 1/255;
+    the gradient describes the smooth part between jumps. The finite difference is therefore the median of
+    12 forward differences over [-6h, 6h], which steps over the (rare, at this scale) jumps.
+    """
+    avatar = template_avatar(every=300, scale=60.0, opacity=0.99)
+    reference = reference_view(avatar, 48)
+    view = OrbitView(avatar, BuiltinPosePrior(REFERENCE_POSE), reference, fill=0.9)
+    canonical = avatar.params["means"].detach().double()
+    weights = suggestion_weights(torch.exp(5.0 * canonical[:, 1])).float()[:, None]  # most of the body below mean
+    latent0 = 0.5 * torch.randn(32, generator=torch.Generator().manual_seed(0))
+    angles0 = (torch.tensor(2.2), torch.tensor(0.3))
+    frozen_framing(monkeypatch, view, latent0, angles0)
+
+    latent, azimuth, elevation = latent0.clone().requires_grad_(), *(a.clone().requires_grad_() for a in angles0)
+    image, _ = view.render(latent, azimuth, elevation, reference.camera, weights)
+    image.sum().backward()
+    autograd = torch.cat([latent.grad, azimuth.grad[None], elevation.grad[None]]).double()
+
+    def objective(x: torch.Tensor) -> float:
+        with torch.no_grad():
+            return float(view.render(x[:32], x[32], x[33], reference.camera, weights)[0].sum())
+
+    # spine1 x and z, left collar y, left shoulder z, left hip z, right hip y, azimuth, elevation
+    components = [0, 2, 8, 12, 17, 28, 32, 33]
+    x0 = torch.cat([latent0, torch.stack(angles0)])
+    step = 1e-3
+    finite = []
+    for k in components:
+        shift = torch.zeros(34)
+        shift[k] = step
+        values = [objective(x0 + j * shift) for j in range(-6, 7)]
+        finite.append(float(np.median(np.diff(values))) / step)
+    finite_t = torch.tensor(finite, dtype=torch.float64)
+    assert (finite_t.abs() > 2.0).all(), "every compared component should have a clearly non-zero gradient"
+    torch.testing.assert_close(autograd[components], finite_t, rtol=0.05, atol=0.0)
+
+
+# ---------------------------------------------------------------- suggest_view end to end
+
+
+@pytest.fixture(scope="module")
+def setup(small_avatar: Avatar):
+    """avatar, V (the back unseen), prior, capsules, reference (40 px, so the search's resolution is full size)."""
+    template = load_body_template("anny")
+    capsules = BodyCapsules.from_points(template.vertices, template.weights, template.rest_joints)
+    reference = reference_view(small_avatar, 40)
+    return small_avatar, back_is_unseen(every=8), BuiltinPosePrior(REFERENCE_POSE), capsules, reference
+
+
+def run(setup, **settings) -> suggest.Suggestion:
+    avatar, visibility, prior, capsules, reference = setup
+    config = SuggestConfig(**{"starts": 2, "candidates": 6, "steps": 4, "resolution": 40, **settings})
+    return suggest_view(avatar, visibility, prior, capsules, reference, config)
+
+
+@pytest.fixture(scope="module")
+def optimised(setup) -> suggest.Suggestion:
+    return run(setup, body_pose="optimise", seed=0)
+
+
+def true_objective(setup, result: suggest.Suggestion) -> float:
+    """sum_i clip(V_i - mean V) * sigma_i of the result's pose file, at full size."""
+    avatar, visibility = setup[:2]
+    return float((suggestion_weights(visibility) * gaussian_visibility(avatar, result.pose)).sum())
+
+
+def test_suggestion_is_deterministic_for_a_seed(setup, optimised) -> None:
+    again = run(setup, body_pose="optimise", seed=0)
+    assert torch.equal(again.latent, optimised.latent)
+    assert (again.azimuth, again.elevation, again.objective) == (optimised.azimuth, optimised.elevation, optimised.objective)
+    assert torch.equal(again.pose.body_pose, optimised.pose.body_pose)
+    assert torch.equal(again.pose.camera.world_to_camera, optimised.pose.camera.world_to_camera)
+
+
+def test_objective_is_the_documented_sum_for_the_returned_pose(setup, optimised) -> None:
+    assert optimised.objective == pytest.approx(true_objective(setup, optimised), rel=1e-3)
+    assert optimised.objective < 0
+
+
+def test_optimising_never_ends_worse_than_the_best_start(setup, optimised) -> None:
+    start = run(setup, body_pose="optimise", seed=0, steps=0)  # no steps: the best scored start itself
+    assert optimised.objective <= start.objective
+    assert setup[3].intersecting_pairs(optimised.pose.body_pose) == []
+    assert joint_limit_violations(optimised.pose.body_pose) == []
+
+
+def test_canonical_mode_keeps_the_reference_pose_exactly(setup) -> None:
+    reference = setup[4]
+    result = run(setup, body_pose="canonical", seed=1)
+    assert torch.equal(result.pose.body_pose, reference.body_pose)
+    assert torch.equal(result.pose.transl, reference.transl)
+    assert torch.equal(result.latent, torch.zeros(32))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_random_mode_gives_a_natural_collision_free_pose(setup, seed: int) -> None:
+    capsules, reference = setup[3], setup[4]
+    result = run(setup, body_pose="random", seed=seed)
+    assert joint_limit_violations(result.pose.body_pose) == []
+    assert capsules.intersecting_pairs(result.pose.body_pose) == []
+    assert (result.pose.body_pose - reference.body_pose).abs().max() > 0.1, "a random pose, not the reference"
+    assert result.objective == pytest.approx(true_objective(setup, result), rel=1e-3)
+
+
+@pytest.mark.parametrize("mode", ["canonical", "optimise"])
+def test_an_unseen_back_is_shown_from_behind(setup, optimised, mode: str) -> None:
+    """V low exactly on the back (the reference camera sees the front): the camera goes behind the body."""
+    avatar, _, _, _, reference = setup
+    result = optimised if mode == "optimise" else run(setup, body_pose="canonical", seed=0)
+    assert abs(math.degrees(result.azimuth) - 180.0) < 45.0
+    centre = joints_box_centre(avatar, result.pose.body_pose, result.pose.transl)
+    reference_forward = reference.camera.world_to_camera[2, :3].double()  # points from the camera to the front
+    assert float((result.pose.camera.center.double() - centre) @ reference_forward) > 1.0
+
+
+def test_unknown_body_pose_mode_is_refused(setup) -> None:
+    with pytest.raises(ValueError, match="body_pose"):
+        run(setup, body_pose="dance")

@@ -1,0 +1,236 @@
+"""visibility, suggest, simulate-user, apply-edit and refine through the CLI, on the committed 256²
+sample shrunk to 64²: what each writes, what each refuses, and that a refusal changes nothing."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from avatarperfect_cli.avatar.model import Avatar
+from avatarperfect_cli.cli import app
+from avatarperfect_cli.io import read_image, read_pose, write_image
+from avatarperfect_cli.io.workspace import open_workspace
+
+SAMPLE = Path(__file__).resolve().parents[2] / "examples" / "sample"
+TRAIN_ARGS = ["--iterations", "30", "--resolution", "64", "--frames", "0:59:6"]
+FAST_SUGGEST = ["--starts", "1", "--steps", "3", "--resolution", "32"]
+
+
+def invoke(*args: object):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def snapshot(root: Path) -> dict[str, str]:
+    """Every file under `root` with its content hash."""
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def one_line_error(result) -> str:
+    assert result.exit_code == 2, result.output
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error:"), result.stderr
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("loop") / "ws"
+    result = invoke("train-initial", SAMPLE / "train", root, *TRAIN_ARGS)
+    assert result.exit_code == 0, result.output
+    return root
+
+
+@pytest.fixture()
+def workspace(trained: Path, tmp_path: Path) -> Path:
+    """A private copy of the trained workspace (its dataset path stays absolute)."""
+    root = tmp_path / "ws"
+    shutil.copytree(trained, root)
+    return root
+
+
+def test_visibility_writes_record_and_picture(workspace: Path):
+    result = invoke("visibility", workspace)
+    assert result.exit_code == 0, result.output
+    with np.load(workspace / "visibility" / "000.npz") as data:
+        visibility = data["visibility"]
+        assert int(data["iteration"]) == 0 and int(data["frames"]) == 10 and list(data["edits"]) == []
+        assert float(data["mean"]) == pytest.approx(visibility.mean())
+    assert visibility.shape == (len(Avatar.load(workspace / "avatar" / "000.ply")),)
+    assert (visibility >= 0).all() and (visibility > 0).mean() > 0.5
+    picture = read_image(workspace / "visibility" / "000.png")
+    assert picture.shape[1] > 3 * picture.shape[0]  # five views side by side and a colour bar
+
+
+def test_visibility_of_another_iteration_is_refused_and_nothing_changes(workspace: Path):
+    assert invoke("visibility", workspace).exit_code == 0
+    record = workspace / "visibility" / "000.npz"
+    with np.load(record) as data:
+        fields = dict(data)
+    fields["iteration"] = 3
+    np.savez(record, **fields)
+    before = snapshot(workspace)
+    message = one_line_error(invoke("suggest", workspace, *FAST_SUGGEST))
+    assert "000.npz" in message and "iteration 3" in message
+    assert snapshot(workspace) == before
+
+
+def test_missing_dataset_is_one_line(workspace: Path):
+    manifest = json.loads((workspace / "workspace.json").read_text())
+    manifest["dataset"] = str(workspace / "moved-away")
+    (workspace / "workspace.json").write_text(json.dumps(manifest))
+    before = snapshot(workspace)
+    message = one_line_error(invoke("visibility", workspace))
+    assert "moved-away" in message and "workspace.json" in message
+    assert snapshot(workspace) == before
+
+
+def test_suggest_writes_a_complete_suggestion(workspace: Path):
+    result = invoke("suggest", workspace, *FAST_SUGGEST, "--seed", "3")
+    assert result.exit_code == 0, result.output
+    folder = workspace / "suggestions" / "001"
+    assert sorted(p.name for p in folder.iterdir()) == [
+        "guide.png", "pose.json", "suggested.png", "suggested_alpha.png", "suggestion.json"
+    ]  # fmt: skip
+    assert "apply-edit" in result.stderr and "suggested.png" in result.stderr
+    image = read_image(folder / "suggested.png")
+    assert image.shape == (64, 64, 3)
+    pose = read_pose(folder / "pose.json")
+    assert (pose.camera.width, pose.camera.height) == (64, 64)
+    summary = json.loads((folder / "suggestion.json").read_text())
+    assert summary["iteration"] == 0 and summary["objective"] <= 0
+    # render --pose reproduces the suggested image from pose.json
+    rendered = workspace.parent / "again.png"
+    assert invoke("render", workspace, "--pose", folder / "pose.json", "-o", rendered).exit_code == 0
+    assert (read_image(rendered) - image).abs().max() <= 1 / 255
+    # the same seed again gives the same view; it is numbered 002
+    assert invoke("suggest", workspace, *FAST_SUGGEST, "--seed", "3").exit_code == 0
+    assert (workspace / "suggestions" / "002" / "suggested.png").is_file()
+
+
+def test_canonical_suggestion_keeps_the_training_pose(workspace: Path):
+    assert invoke("suggest", workspace, *FAST_SUGGEST, "--body-pose", "canonical").exit_code == 0
+    pose = read_pose(workspace / "suggestions" / "001" / "pose.json")
+    reference = torch.tensor(open_workspace(workspace).manifest["reference_pose"]["body_pose"])
+    assert torch.allclose(pose.body_pose, reference, atol=1e-6)
+
+
+def test_apply_edit_needs_a_suggestion_and_changes_nothing(workspace: Path, tmp_path: Path):
+    painted = tmp_path / "painted.png"
+    write_image(painted, torch.ones(64, 64, 3))
+    before = snapshot(workspace)
+    assert "suggest" in one_line_error(invoke("apply-edit", workspace, painted))
+    assert snapshot(workspace) == before
+
+
+def _paint_background_square(workspace: Path, tmp_path: Path) -> tuple[Path, torch.Tensor]:
+    """Paint a white square over the middle of the latest suggestion; returns the file and the square."""
+    suggested = read_image(workspace / "suggestions" / "001" / "suggested.png", "RGB")
+    square = torch.zeros(64, 64, dtype=torch.bool)
+    square[24:40, 24:40] = True
+    painted = suggested.clone()
+    painted[square] = 1.0
+    path = tmp_path / "edited.png"
+    write_image(path, painted)
+    return path, square
+
+
+def test_apply_edit_refine_revert_loop(workspace: Path, tmp_path: Path):
+    assert invoke("suggest", workspace, *FAST_SUGGEST).exit_code == 0
+    edited, square = _paint_background_square(workspace, tmp_path)
+    result = invoke("apply-edit", workspace, edited)
+    assert result.exit_code == 0, result.output
+    folder = workspace / "edits" / "001"
+    assert sorted(p.name for p in folder.iterdir()) == [
+        "background.png", "edit.json", "edited.png", "mask.png", "pose.json", "target.png"
+    ]  # fmt: skip
+    background = read_image(folder / "background.png", "L")[..., 0] >= 0.5
+    suggested = read_image(workspace / "suggestions" / "001" / "suggested.png", "RGB")
+    changed = square & (suggested < 0.99).any(dim=-1)
+    assert (background == changed).float().mean() > 0.97  # the painted-over subject pixels, give or take the seam
+
+    avatar = Avatar.load(workspace / "avatar" / "000.ply")
+    pose = read_pose(folder / "pose.json")
+    from avatarperfect_cli.refinement.erase import centres_in_region
+
+    expected_deleted = int(centres_in_region(avatar, pose, background).sum())
+    result = invoke("refine", workspace, "--iterations", "10")
+    assert result.exit_code == 0, result.output
+    ws = open_workspace(workspace)
+    entry = ws.manifest["history"][-1]
+    assert ws.iteration == 1 and entry["avatar"] == 1 and entry["edits"] == [1] and entry["applied_edits"] == [1]
+    assert entry["deleted"] == expected_deleted > 0
+    # a second refine does not delete for the same edit again
+    assert invoke("refine", workspace, "--iterations", "5").exit_code == 0
+    assert open_workspace(workspace).manifest["history"][-1]["deleted"] == 0
+    # revert keeps every avatar; the next refine writes 003 and re-applies the edit's deletions
+    assert invoke("refine", workspace, "--revert-to", "0").exit_code == 0
+    assert open_workspace(workspace).iteration == 0
+    assert invoke("refine", workspace, "--iterations", "5").exit_code == 0
+    ws = open_workspace(workspace)
+    assert ws.iteration == 3 and ws.manifest["history"][-1]["deleted"] == expected_deleted
+    assert sorted(p.name for p in (workspace / "avatar").iterdir()) == ["000.ply", "001.ply", "002.ply", "003.ply"]
+
+
+def test_blank_and_wrong_size_edits_are_refused(workspace: Path, tmp_path: Path):
+    assert invoke("suggest", workspace, *FAST_SUGGEST).exit_code == 0
+    before = snapshot(workspace)
+    blank = workspace / "suggestions" / "001" / "suggested.png"
+    assert "no pixel differs" in one_line_error(invoke("apply-edit", workspace, blank))
+    small = tmp_path / "small.png"
+    write_image(small, torch.ones(32, 32, 3))
+    assert "32x32" in one_line_error(invoke("apply-edit", workspace, small))
+    assert snapshot(workspace) == before
+
+
+def test_list_and_remove_edits(workspace: Path, tmp_path: Path):
+    assert invoke("suggest", workspace, *FAST_SUGGEST).exit_code == 0
+    edited, _ = _paint_background_square(workspace, tmp_path)
+    assert invoke("apply-edit", workspace, edited).exit_code == 0
+    listed = invoke("apply-edit", workspace, "--list")
+    assert listed.exit_code == 0 and "001" in listed.stdout and "not yet" in listed.stdout
+    assert invoke("apply-edit", workspace, "--remove", "1").exit_code == 0
+    assert not (workspace / "edits" / "001").exists()
+    assert "no edit 1" in one_line_error(invoke("apply-edit", workspace, "--remove", "1"))
+
+
+def test_erase_baselines_write_the_next_avatar(workspace: Path, tmp_path: Path):
+    assert invoke("suggest", workspace, *FAST_SUGGEST, "--body-pose", "canonical").exit_code == 0
+    region = tmp_path / "region.png"
+    selection = torch.zeros(64, 64, 1)
+    selection[20:44, 20:44] = 1.0
+    write_image(region, selection)
+    before = len(Avatar.load(workspace / "avatar" / "000.ply"))
+    assert invoke("apply-edit", workspace, "--region", region, "--erase", "center").exit_code == 0
+    after_center = len(Avatar.load(workspace / "avatar" / "001.ply"))
+    assert invoke("refine", workspace, "--revert-to", "0").exit_code == 0
+    assert invoke("apply-edit", workspace, "--region", region, "--erase", "splat").exit_code == 0
+    after_splat = len(Avatar.load(workspace / "avatar" / "002.ply"))
+    # center also takes the hidden Gaussians behind the region, splat only the ones seen in it
+    assert before > after_center and before > after_splat and after_center != after_splat
+    history = open_workspace(workspace).manifest["history"]
+    assert [entry["stage"] for entry in history[-3:]] == ["erase-center", "revert", "erase-splat"]
+
+
+def test_simulate_user_paints_an_ordinary_edit(workspace: Path):
+    assert invoke("suggest", workspace, *FAST_SUGGEST).exit_code == 0
+    result = invoke("simulate-user", workspace, "--subject", SAMPLE)
+    assert result.exit_code == 0, result.output
+    painted = workspace / "suggestions" / "001" / "simulated_edit.png"
+    assert read_image(painted).shape == (64, 64, 3)
+    stats = json.loads(painted.with_suffix(".json").read_text())
+    assert 0 < stats["painted_pixels"] <= stats["budget_pixels"]
+    assert invoke("apply-edit", workspace, painted).exit_code == 0
+
+
+def test_simulate_user_refuses_a_real_dataset(workspace: Path, tmp_path: Path):
+    assert invoke("suggest", workspace, *FAST_SUGGEST).exit_code == 0
+    real = tmp_path / "real"
+    real.mkdir()
+    assert "not a synthetic subject" in one_line_error(invoke("simulate-user", workspace, "--subject", real))
