@@ -20,11 +20,21 @@ $(VENV)/.installed: pyproject.toml
 test: install
 	$(BIN)/python -m pytest
 
-# The sample subject through the whole loop (grows as the refinement stages land).
+# The sample subject through the paper's loop: train, then ROUNDS x (visibility, suggest, a simulated
+# user paints the suggestion, apply-edit, refine), then a report and a walking video.
+ROUNDS ?= 5
 demo: install
 	$(BIN)/avatarperfect make-sample $(DEMO)/sample
 	$(BIN)/avatarperfect train-initial $(DEMO)/sample/train $(DEMO)/ws --force
-	$(BIN)/avatarperfect evaluate $(DEMO)/ws --test $(DEMO)/sample/test
+	for round in $$(seq $(ROUNDS)); do \
+	  echo "== round $$round of $(ROUNDS)"; \
+	  $(BIN)/avatarperfect visibility $(DEMO)/ws && \
+	  $(BIN)/avatarperfect suggest $(DEMO)/ws && \
+	  $(BIN)/avatarperfect simulate-user $(DEMO)/ws -o $(DEMO)/painted.png && \
+	  $(BIN)/avatarperfect apply-edit $(DEMO)/ws $(DEMO)/painted.png && \
+	  $(BIN)/avatarperfect refine $(DEMO)/ws || exit 1; \
+	done
+	$(BIN)/avatarperfect report $(DEMO)/ws --test $(DEMO)/sample/test -o $(DEMO)/report
 	$(BIN)/avatarperfect render $(DEMO)/ws --motion examples/motions/walk.npz -o $(DEMO)/walk.mp4
 
 bench: install

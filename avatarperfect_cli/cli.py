@@ -286,6 +286,19 @@ def simulate_user(
     run(workspace, subject, UserConfig(style=style, budget=budget), output)
 
 
+@app.command("report")
+@_one_line_errors
+def report(
+    workspace: Path = typer.Argument(..., help="Workspace folder."),
+    test: Path = typer.Option(..., "--test", help="Held-out video in the People-Snapshot layout."),
+    output: Path = typer.Option(..., "--output", "-o", help="Folder for metrics.png, suggestions.png, comparison.mp4."),
+) -> None:
+    """Pictures of the refinement loop: held-out metrics per iteration, the edits, a before/after video."""
+    from avatarperfect_cli.stages.report import report as run
+
+    run(workspace, test, output)
+
+
 def _required(value: Optional[Path], message: str) -> Path:
     from avatarperfect_cli.errors import AvatarPerfectError
 

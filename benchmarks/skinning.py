@@ -1,12 +1,13 @@
 """Gaussian skinning speed on the CPU: the numba kernel against the torch path, forward and forward+backward.
 
-    python -m benchmarks.skinning [--repeats 15]
+    python -m benchmarks.skinning [--repeats 15] [--threads T]
 
 `skin_gaussians` (blend 24 joint transforms, pose means, turn each orientation by the polar rotation of its
 blended 3x3) in float32 for N = 30k and 100k Gaussians, each weighted mostly to 1 to 3 joints (a softmax of
 sparse logits), under the transforms of a random pose (0.5 rad per joint) of a random skeleton.
 Forward+backward: gradients w.r.t. means, quats, weights and transforms from a random upstream gradient.
-Times are medians over the repeats after one warm-up run, in one process.
+Times are medians over the repeats after one warm-up run, in one process; --threads sets torch's thread count
+(the numba kernel itself is single-threaded; blending the transforms is a torch matmul).
 """
 
 from __future__ import annotations
@@ -59,7 +60,9 @@ def forward_backward_fn(scene: list[torch.Tensor], backend: str):
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeats", type=int, default=15)
+    parser.add_argument("--threads", type=int, default=torch.get_num_threads())
     args = parser.parse_args()
+    torch.set_num_threads(args.threads)
     import numba
 
     print(f"torch {torch.__version__}, numba {numba.__version__}, threads: torch {torch.get_num_threads()} "

@@ -10,12 +10,24 @@ Layout under the dataset root:
     poses/anim_nerf_{split}.npz per-split poses (InstantAvatar "refine"), same keys as above
     subject.json                optional avatarperfect extension: {"body_model": "anny" | "smpl", ...}
 
+Which pose file: with pose_source "auto", the split's file poses/anim_nerf_{split}.npz when there is one,
+else poses_optimized.npz, else poses.npz; when several are present the choice is reported in
+`VideoDataset.notes`. A pose_source path picks one file (relative to the root, or absolute).
+
 Which pose row belongs to which frame:
 - poses.npz, poses_optimized.npz and any other whole-sequence file: row i is frame i (as in InstantAvatar),
   so the file needs more rows than the largest selected frame id;
-- split files (`anim_nerf_*.npz`) hold one row per frame of their split, in order: their row count must
-  equal the number of selected frames, and row k is the k-th selected frame. Any other count is an error
-  rather than a guess, because a split file indexed by frame id silently gives the wrong poses.
+- split files (`anim_nerf_*.npz`) hold one row per frame of their split, in order, but do not store which
+  frames those are (InstantAvatar's configs give start/end/skip). With an explicit frame range, its row
+  count must equal the number of selected frames and row k is the k-th selected frame. Without one:
+  1. a row per image: every image;
+  2. a folder named like one of InstantAvatar's People-Snapshot subjects (INSTANTAVATAR_SPLITS) whose
+     row count matches that config: the config's frames;
+  3. otherwise InstantAvatar's convention, assumed: the train split starts at the first image and the test
+     split (val: its first frame) follows it, both with the one step round(images / (train + test rows)),
+     counted over the sorted images like InstantAvatar's loader.
+  Cases 2 and 3 are a guess and say so in `VideoDataset.notes`; a split that does not fit the images is an
+  error naming the file, rather than a silent misalignment.
 """
 
 from __future__ import annotations
@@ -46,6 +58,16 @@ NUM_BETAS = 10
 SPLITS = ("train", "val", "test")
 _IMAGE_NAME = re.compile(r"image_(\d{4,})\.png")
 _MAX_THREADS = 8
+
+SPLIT_PREFIX = "anim_nerf_"
+
+
+def _instantavatar_config(train: str, test: str) -> dict[str, FrameRange]:
+    """A subject's splits as InstantAvatar's confs/dataset/peoplesnapshot/*.yaml give them (val: one frame)."""
+    train_range, test_range = FrameRange.parse(train), FrameRange.parse(test)
+    val_range = FrameRange(test_range.start, test_range.start, test_range.step)
+    return {"train": train_range, "val": val_range, "test": test_range}
+
 
 _T = TypeVar("_T")
 _R = TypeVar("_R")
@@ -85,6 +107,15 @@ class FrameRange:
         return cls(*numbers)
 
 
+# start:end:skip (end inclusive) of InstantAvatar's public People-Snapshot configs, indices into the sorted images.
+INSTANTAVATAR_SPLITS: dict[str, dict[str, FrameRange]] = {
+    "male-3-casual": _instantavatar_config("0:455:4", "456:675:4"),
+    "female-3-casual": _instantavatar_config("0:445:4", "446:647:4"),
+    "female-4-casual": _instantavatar_config("0:335:4", "335:523:4"),
+    "male-4-casual": _instantavatar_config("0:659:6", "660:872:6"),
+}
+
+
 @dataclass
 class VideoDataset:
     """T frames of one subject seen by a fixed camera.
@@ -97,6 +128,9 @@ class VideoDataset:
     camera:    the fixed camera, sized for `images`
     frame_ids: (T,) int64 frame numbers of the images
     subject:   the parsed subject.json (body model and shape), or None
+    pose_file: the pose file read, relative to the dataset root when inside it
+    notes:     one line each about a choice the loader made that the user may want to override
+               (which of several pose files, which frames a split file covers)
     """
 
     images: torch.Tensor
@@ -107,6 +141,8 @@ class VideoDataset:
     camera: Camera
     frame_ids: torch.Tensor
     subject: dict[str, Any] | None
+    pose_file: str = "poses.npz"
+    notes: tuple[str, ...] = ()
 
     def __len__(self) -> int:
         return int(self.frame_ids.shape[0])
@@ -124,13 +160,13 @@ def load_people_snapshot(
 
     frames:      frame ids to load; None loads every image in images/
     split:       "train", "val" or "test"; with pose_source "auto" it selects poses/anim_nerf_{split}.npz
-                 when that file exists
+                 when that file exists (see the module doc for the frames a split file covers)
     downscale:   integer factor; the size becomes round(W / d) x round(H / d). Images are averaged over
                  pixel areas (cv2.INTER_AREA) after compositing, masks are area-averaged and kept where >= 0.5,
                  and K's rows scale by the exact size ratio per axis (pixel centres at +0.5; this equals
                  Camera.scaled(1 / d) when d divides the size)
     pose_source: "auto" (the split file if any, else poses_optimized.npz, else poses.npz) or a path
-                 relative to `root`
+                 relative to `root` (or absolute)
     with_images: False reads only the poses and the camera (`images` and `masks` are then empty)
     Raises InputFileError naming the offending file for any missing or malformed input.
     """
@@ -143,11 +179,24 @@ def load_people_snapshot(
         raise InputFileError(root, "dataset folder not found")
 
     camera = _read_camera(root / "cameras.npz")
-    frame_ids = _select_frames(root / "images", frames)
-    pose_path = _pose_path(root, split, pose_source)
-    body_pose, transl, betas = _read_poses(pose_path, frame_ids)
+    available = _available_frames(root / "images")
+    pose_path, notes = _pose_path(root, split, pose_source)
+    thetas, all_transl, betas = _read_pose_arrays(pose_path)
+    if _is_split_file(pose_path):
+        if frames is None:
+            frame_ids, frames_note = _split_frames(root, pose_path, len(thetas), available)
+            notes += [frames_note] if frames_note else []
+        else:
+            frame_ids = _select_frames(root / "images", available, frames)
+        rows = _split_rows(pose_path, len(thetas), frame_ids)
+    else:
+        frame_ids = _select_frames(root / "images", available, frames)
+        rows = _sequence_rows(pose_path, len(thetas), frame_ids)
+    body_pose = thetas[rows].reshape(-1, 24, 3).astype(np.float32)
+    transl = all_transl[rows].astype(np.float32)
     subject = _read_subject(root / "subject.json")
-    out_camera = _downscaled_camera(camera, downscale)
+    out_camera = downscaled_camera(camera, downscale)
+    described = {"subject": subject, "pose_file": _relative_name(pose_path, root), "notes": tuple(notes)}
     if not with_images:
         return VideoDataset(
             images=torch.empty(0, out_camera.height, out_camera.width, 3),
@@ -157,7 +206,7 @@ def load_people_snapshot(
             betas=torch.from_numpy(betas),
             camera=out_camera,
             frame_ids=torch.from_numpy(frame_ids),
-            subject=subject,
+            **described,
         )
 
     out_width, out_height = out_camera.width, out_camera.height
@@ -190,7 +239,7 @@ def load_people_snapshot(
         betas=torch.from_numpy(betas),
         camera=out_camera,
         frame_ids=torch.from_numpy(frame_ids),
-        subject=subject,
+        **described,
     )
 
 
@@ -267,7 +316,7 @@ def write_people_snapshot(
 # ----------------------------------------------------------------------------------------------- reading
 
 
-def _downscaled_camera(camera: Camera, downscale: int) -> Camera:
+def downscaled_camera(camera: Camera, downscale: int) -> Camera:
     """The camera for images of size round(W / d) x round(H / d); K's rows scale by the exact size ratio."""
     width, height = max(1, round(camera.width / downscale)), max(1, round(camera.height / downscale))
     K = camera.K.clone()
@@ -296,8 +345,8 @@ def _read_camera(path: Path) -> Camera:
     return Camera(K.float(), world_to_camera.float(), size["width"], size["height"])
 
 
-def _select_frames(images_dir: Path, frames: FrameRange | None) -> np.ndarray:
-    """(T,) int64 ids of the frames to load; each has an image in `images_dir`."""
+def _available_frames(images_dir: Path) -> np.ndarray:
+    """(F,) int64 sorted ids of the frames that have an image_%04d.png in `images_dir`."""
     try:
         names = [entry.name for entry in os.scandir(images_dir)]
     except OSError:
@@ -307,8 +356,13 @@ def _select_frames(images_dir: Path, frames: FrameRange | None) -> np.ndarray:
     available = sorted(int(m[1]) for m in matches if m and m[0] == f"image_{int(m[1]):04d}.png")
     if not available:
         raise InputFileError(images_dir, "no images named image_%04d.png")
+    return np.asarray(available, dtype=np.int64)
+
+
+def _select_frames(images_dir: Path, available: np.ndarray, frames: FrameRange | None) -> np.ndarray:
+    """(T,) int64 ids of the frames to load; each has an image in `images_dir` (`available`)."""
     if frames is None:
-        return np.asarray(available, dtype=np.int64)
+        return available
     selected = frames.frame_ids()
     if selected.size == 0:
         raise InputFileError(images_dir, f"frame range {frames} selects no frames")
@@ -321,23 +375,43 @@ def _select_frames(images_dir: Path, frames: FrameRange | None) -> np.ndarray:
     return selected
 
 
-def _pose_path(root: Path, split: str | None, pose_source: str) -> Path:
+def _pose_path(root: Path, split: str | None, pose_source: str) -> tuple[Path, list[str]]:
+    """The pose file to read, and a note naming the other pose files when "auto" chose among several."""
     if pose_source != "auto":
         path = root / pose_source
         if not path.is_file():
             raise InputFileError(path, "pose file missing")
-        return path
-    candidates = [root / "poses" / f"anim_nerf_{split}.npz"] if split else []
+        return path, []
+    candidates = [root / "poses" / f"{SPLIT_PREFIX}{split}.npz"] if split else []
     candidates += [root / "poses_optimized.npz", root / "poses.npz"]
-    for path in candidates:
-        if path.is_file():
-            return path
-    others = ", ".join(str(path.relative_to(root)) for path in candidates[:-1])
-    raise InputFileError(root / "poses.npz", f"pose file missing (also looked for {others})")
+    present = [path for path in candidates if path.is_file()]
+    if not present:
+        others = ", ".join(str(path.relative_to(root)) for path in candidates[:-1])
+        split_files = sorted(path.name for path in (root / "poses").glob(f"{SPLIT_PREFIX}*.npz"))
+        hint = f"; there are split files ({', '.join(split_files)}): name one with --poses" if split_files else ""
+        raise InputFileError(root / "poses.npz", f"pose file missing (also looked for {others}){hint}")
+    chosen = present[0]
+    notes = []
+    if len(present) > 1:
+        others = ", ".join(_relative_name(path, root) for path in present[1:])
+        notes.append(f"{root}: poses from {_relative_name(chosen, root)} (also there: {others}; --poses picks another)")
+    return chosen, notes
 
 
-def _read_poses(path: Path, frame_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """body_pose (T, 24, 3), transl (T, 3), betas (10,), all float32, for `frame_ids` (see the module doc)."""
+def _is_split_file(path: Path) -> bool:
+    return path.name.startswith(SPLIT_PREFIX)
+
+
+def _relative_name(path: Path, root: Path) -> str:
+    """`path` relative to `root` (POSIX separators) when inside it, else as given."""
+    try:
+        return path.relative_to(root).as_posix()
+    except ValueError:
+        return str(path)
+
+
+def _read_pose_arrays(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """thetas (N, 72) and transl (N, 3) float64, betas (10,) float32, from a pose file (any layout)."""
     data = _load_npz(path, "pose file")
     if "thetas" in data:
         thetas = _array(data, "thetas", path, (None, 72))
@@ -347,26 +421,63 @@ def _read_poses(path: Path, frame_ids: np.ndarray) -> tuple[np.ndarray, np.ndarr
         thetas = np.concatenate([global_orient, joints], axis=1)
     else:
         raise InputFileError(path, "holds neither 'thetas' nor 'global_orient' + 'body_pose'")
-    rows = thetas.shape[0]
-    transl = _array(data, "transl", path, (rows, 3))
+    transl = _array(data, "transl", path, (thetas.shape[0], 3))
     betas = _array(data, "betas", path, None)
     if betas.shape not in ((NUM_BETAS,), (1, NUM_BETAS)):
         raise InputFileError(path, f"'betas' has shape {betas.shape}, expected (10,) or (1, 10)")
+    return thetas, transl, betas.reshape(NUM_BETAS).astype(np.float32)
 
-    if path.name.startswith("anim_nerf_"):
-        if rows != len(frame_ids):
-            raise InputFileError(
-                path,
-                f"split file holds {rows} pose rows for {len(frame_ids)} selected frames; "
-                "select exactly the split's frames (its rows follow them in order)",
-            )
-        index = np.arange(rows)
+
+def _sequence_rows(path: Path, rows: int, frame_ids: np.ndarray) -> np.ndarray:
+    """Rows of a whole-sequence pose file for `frame_ids`: row i is frame i."""
+    if rows <= frame_ids.max():
+        raise InputFileError(path, f"holds {rows} pose rows, fewer than needed for frame {frame_ids.max()}")
+    return frame_ids
+
+
+def _split_rows(path: Path, rows: int, frame_ids: np.ndarray) -> np.ndarray:
+    """Rows of a split file for its frames `frame_ids`: one row per frame, in order."""
+    if rows != len(frame_ids):
+        raise InputFileError(
+            path,
+            f"split file holds {rows} pose rows for {len(frame_ids)} selected frames; "
+            "select exactly the split's frames (its rows follow them in order)",
+        )
+    return np.arange(rows)
+
+
+def _split_frames(root: Path, path: Path, rows: int, available: np.ndarray) -> tuple[np.ndarray, str | None]:
+    """The frames a split file's `rows` rows belong to, when no frame range was given (the module doc's
+    rules 1 to 3), and a note when that is a guess. `available`: (F,) sorted ids of the images."""
+    if rows == len(available):
+        return available, None
+    if rows > len(available):
+        raise InputFileError(path, f"holds {rows} pose rows, more than the {len(available)} images: it is not this video's split")
+    split = path.stem.removeprefix(SPLIT_PREFIX)
+    unknown = f"holds {rows} pose rows for {len(available)} images, and a split file does not store which frames they are"
+    known = INSTANTAVATAR_SPLITS.get(root.resolve().name, {}).get(split)
+    if known is not None and len(known.frame_ids()) == rows and known.end < len(available):
+        indices, source = known.frame_ids(), f"InstantAvatar's {root.resolve().name} config"
     else:
-        if rows <= frame_ids.max():
-            raise InputFileError(path, f"holds {rows} pose rows, fewer than needed for frame {frame_ids.max()}")
-        index = frame_ids
-    body_pose = thetas[index].reshape(-1, 24, 3).astype(np.float32)
-    return body_pose, transl[index].astype(np.float32), betas.reshape(NUM_BETAS).astype(np.float32)
+        counts = {name: rows if name == split else _split_row_count(root, name) for name in ("train", "test")}
+        if split == "val" and counts["test"] == 0:
+            counts["test"] = rows
+        step = round(len(available) / sum(counts.values()))
+        start = 0 if split == "train" else counts["train"] * step
+        indices = start + step * np.arange(rows)
+        if step < 1 or indices[-1] >= len(available):
+            raise InputFileError(path, f"{unknown}; give them with --frames START:END:STEP (InstantAvatar's start/end/skip)")
+        source = "the train split from the first image, the test split after it, one step (InstantAvatar's convention)"
+    frame_ids = available[indices]
+    chosen = FrameRange(int(frame_ids[0]), int(frame_ids[-1]), int(indices[1] - indices[0]) if rows > 1 else 1)
+    described = chosen if np.array_equal(frame_ids, chosen.frame_ids()) else f"image indices {indices[0]}..{indices[-1]}"
+    return frame_ids, f"{path}: {unknown}; assuming frames {described} from {source}; --frames overrides"
+
+
+def _split_row_count(root: Path, split: str) -> int:
+    """Rows of poses/anim_nerf_{split}.npz, 0 when there is no such file."""
+    path = root / "poses" / f"{SPLIT_PREFIX}{split}.npz"
+    return len(_read_pose_arrays(path)[0]) if path.is_file() else 0
 
 
 def _read_subject(path: Path) -> dict[str, Any] | None:

@@ -10,9 +10,14 @@ import secrets
 import shutil
 import sys
 import tempfile
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+
+# Test hook: seconds to sleep just before each final rename, so that the kill harness
+# (tests/reliability/kill_harness.py) can land signals inside a save. Unset: no delay.
+SAVE_DELAY_VARIABLE = "AVATARPERFECT_TEST_SAVE_DELAY"
 
 
 @contextmanager
@@ -28,6 +33,7 @@ def atomic_path(path: Path | str) -> Iterator[Path]:
     temporary = path.with_name(f".{path.stem}.tmp-{secrets.token_hex(4)}{path.suffix}")
     try:
         yield temporary
+        _test_save_delay()
         os.replace(temporary, path)
     except BaseException:
         temporary.unlink(missing_ok=True)
@@ -79,6 +85,7 @@ def replace_folder(staging: Path, target: Path) -> None:
     that call is missing, the old folder is renamed aside first (`recover_folder` puts it back if a
     crash comes between the two renames).
     """
+    _test_save_delay()
     if not target.exists():
         os.replace(staging, target)
         return
@@ -107,6 +114,13 @@ def remove_temporaries(folder: Path) -> None:
     for leftover in folder.rglob(".*.tmp-*"):
         if leftover.is_file():
             leftover.unlink(missing_ok=True)
+
+
+def _test_save_delay() -> None:
+    """Sleep $AVATARPERFECT_TEST_SAVE_DELAY seconds when it is set (the only place it is read; see SAVE_DELAY_VARIABLE)."""
+    delay = os.environ.get(SAVE_DELAY_VARIABLE)
+    if delay:
+        time.sleep(float(delay))
 
 
 def _retired_name(target: Path) -> Path:

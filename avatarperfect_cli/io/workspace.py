@@ -149,28 +149,43 @@ def lock_path(root: Path) -> Path:
 def workspace_lock(root: Path) -> Iterator[None]:
     """Hold the workspace's lock for the block, or refuse at once (one line) while another stage holds it.
 
-    An OS file lock (flock): the kernel releases it when its process ends, however it ends, so a
-    killed stage never leaves a stale lock. On entry, leftovers of a killed stage are cleaned up.
+    An OS file lock (flock) on a hidden sibling file: the kernel releases it when its process ends,
+    however it ends, so a killed stage never leaves a stale lock. The file is removed on release; a
+    locker that finds its file was removed meanwhile tries again. On entry, leftovers of a killed stage
+    are cleaned up.
     """
     path = lock_path(root)
     path.parent.mkdir(parents=True, exist_ok=True)
-    descriptor = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    descriptor = _acquire(path, root)
     try:
-        try:
-            fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.pread(descriptor, 32, 0).decode(errors="replace").strip() or "?"
-            raise AvatarPerfectError(
-                f"{root}: another avatarperfect stage (pid {holder}) is using this workspace; wait for it to finish"
-            ) from None
-        os.ftruncate(descriptor, 0)
         os.pwrite(descriptor, f"{os.getpid()}\n".encode(), 0)
         recover_folder(Path(os.path.abspath(root)))
         if root.is_dir():
             remove_temporaries(root)
         yield
     finally:
+        path.unlink(missing_ok=True)
         os.close(descriptor)  # releases the lock
+
+
+def _acquire(path: Path, root: Path) -> int:
+    """A descriptor of `path` holding its exclusive lock (see `workspace_lock`)."""
+    while True:
+        descriptor = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(descriptor, 32, 0).decode(errors="replace").strip() or "?"
+            os.close(descriptor)
+            raise AvatarPerfectError(
+                f"{root}: another avatarperfect stage (pid {holder}) is using this workspace; wait for it to finish"
+            ) from None
+        try:
+            if os.stat(path).st_ino == os.fstat(descriptor).st_ino:
+                return descriptor
+        except FileNotFoundError:
+            pass
+        os.close(descriptor)  # the holder removed the file between our open and our lock
 
 
 @contextmanager

@@ -38,7 +38,7 @@ def _panel_camera(points: torch.Tensor, direction: tuple[float, ...], up: tuple[
     K = torch.tensor([[focal, 0.0, PANEL_SIZE / 2], [0.0, focal, PANEL_SIZE / 2], [0.0, 0.0, 1.0]])
     towards = torch.tensor(direction)
     rotation = look_at(center + towards, center, torch.tensor(up))[:3, :3]
-    distance = framing_distance(points - center, rotation, K, PANEL_SIZE, PANEL_SIZE, fill=0.92)
+    distance = float(framing_distance(points - center, rotation, K, PANEL_SIZE, PANEL_SIZE, fill=0.92))
     return Camera(K, look_at(center + distance * towards, center, torch.tensor(up)), PANEL_SIZE, PANEL_SIZE)
 
 

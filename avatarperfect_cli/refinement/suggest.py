@@ -8,7 +8,8 @@ Gaussians (the rasterizer's camera itself carries no gradient), which is the sam
 
 The camera keeps the dataset camera's intrinsics and up direction; azimuth 0 / elevation 0 is the
 dataset camera's own viewing direction. Its distance is set from the posed body each step so that the
-whole body fits in `fill` of the image: the objective cannot be won by zooming in.
+whole body fits in `fill` of the image: the objective cannot be won by zooming in. The distance is
+part of the gradient (a pose that widens the body pushes the camera back and shows everything smaller).
 """
 
 from __future__ import annotations
@@ -52,7 +53,7 @@ class SuggestConfig:
     steps: int = 30
     resolution: int = 128
     fill: float = 0.9
-    max_elevation_deg: float = 60.0
+    max_elevation_deg: float = 45.0
     min_separation_deg: float = 30.0
     latent_learning_rate: float = 0.12
     angle_learning_rate: float = 0.06
@@ -114,7 +115,10 @@ class OrbitView:
         world[:3, 3] = center - orbit.T @ center
         means, quats = self.avatar.pose(body_pose, transl, world)
         distance = framing_distance(means - center, self.base_rotation, camera.K, camera.width, camera.height, self.fill)
-        base = self._camera(center, distance, camera)
+        base = self._camera(center, float(distance), camera)
+        # the camera sits at the detached distance; moving the body by the difference (zero in value) lets
+        # the gradient see that a pose which widens the body pushes the camera back
+        means = means + (distance - distance.detach()) * self.forward
         out = rasterization(means, quats, self.avatar.scales, self.avatar.opacities, colors, base)
         with torch.no_grad():
             view_rotation = self.base_rotation @ orbit.detach().T
@@ -170,7 +174,7 @@ def suggest_view(
     small = full.scaled(min(1.0, config.resolution / max(full.width, full.height)))
     weights = suggestion_weights(visibility).float()[:, None]
     scale = float(weights.abs().max()) or 1.0
-    weights = weights / scale
+    weights = weights / scale  # the search works on weights in [-1, 0]; `_finish` reports in V's units
 
     def objective(latent: torch.Tensor, azimuth: torch.Tensor, elevation: torch.Tensor, camera: Camera):
         image, pose = view.render(latent, azimuth, elevation, camera, weights)
@@ -194,7 +198,7 @@ def suggest_view(
     if config.body_pose == "random":
         latent = random_natural_latent()
         azimuth, elevation = random_camera()
-        return _finish(view, latent, azimuth, elevation, full, objective)
+        return _finish(view, latent, azimuth, elevation, full, objective, scale)
 
     candidates = []
     with torch.no_grad():
@@ -214,7 +218,7 @@ def suggest_view(
         if best is None or result[0] < best[0]:
             best = result
     assert best is not None
-    return _finish(view, best[1], best[2], best[3], full, objective)
+    return _finish(view, best[1], best[2], best[3], full, objective, scale)
 
 
 def _optimise(view, capsules, objective, latent, azimuth, elevation, camera, config, max_elevation, on_step):
@@ -243,7 +247,9 @@ def _optimise(view, capsules, objective, latent, azimuth, elevation, camera, con
     return best
 
 
-def _finish(view: OrbitView, latent, azimuth: float, elevation: float, camera: Camera, objective) -> Suggestion:
+def _finish(
+    view: OrbitView, latent, azimuth: float, elevation: float, camera: Camera, objective, weight_scale: float
+) -> Suggestion:
     with torch.no_grad():
         value, pose = objective(latent, torch.tensor(azimuth), torch.tensor(elevation), camera)
-    return Suggestion(pose, latent.detach().clone(), azimuth % (2 * math.pi), elevation, float(value))
+    return Suggestion(pose, latent.detach().clone(), azimuth % (2 * math.pi), elevation, float(value) * weight_scale)

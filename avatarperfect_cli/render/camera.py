@@ -74,16 +74,18 @@ def rotation_about(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
     return identity + torch.sin(angle) * cross + (1 - torch.cos(angle)) * (cross @ cross)
 
 
-def framing_distance(points: torch.Tensor, rotation: torch.Tensor, K: torch.Tensor, width: int, height: int, fill: float) -> float:
+def framing_distance(points: torch.Tensor, rotation: torch.Tensor, K: torch.Tensor, width: int, height: int, fill: float) -> torch.Tensor:
     """Distance, metres, from the look-at point to a camera with `rotation` (3, 3, world -> camera) and
     intrinsics K, W x H, at which every point fits inside `fill` of the image around the principal point.
 
     points: (N, 3) relative to the look-at point, world frame. The camera sits at -distance * forward.
+    Returns a 0-d tensor, differentiable w.r.t. the points (through the extreme ones).
     """
-    local = points.detach().double() @ rotation.detach().double().T
-    x, y, z = local.unbind(-1)
+    x, y, z = (points @ rotation.detach().to(points.dtype).T).unbind(-1)
     fx, fy, cx, cy = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
-    need_x = torch.where(x > 0, fx * x / (fill * (width - cx)), -fx * x / (fill * cx)) - z
-    need_y = torch.where(y > 0, fy * y / (fill * (height - cy)), -fy * y / (fill * cy)) - z
-    nearest = float((-z).max()) + 0.05  # keep every point at least 5 cm in front of the camera
-    return max(float(need_x.max()), float(need_y.max()), nearest)
+    # the extreme points decide: the largest offset / (room on that side) minus depth, per side and axis
+    need = torch.stack([
+        fx * x / (fill * (width - cx)) - z, -fx * x / (fill * cx) - z,
+        fy * y / (fill * (height - cy)) - z, -fy * y / (fill * cy) - z, 0.05 - z,  # 5 cm in front at least
+    ])  # fmt: skip
+    return need.max()

@@ -23,7 +23,7 @@ from avatarperfect_cli.io import atomic_write_text, write_image
 from avatarperfect_cli.io.atomic import atomic_folder
 from avatarperfect_cli.io.outputs import check_writable_folder
 from avatarperfect_cli.io.workspace import MANIFEST, Workspace, locked_workspace
-from avatarperfect_cli.stages.workspace_data import training_camera
+from avatarperfect_cli.stages.workspace_data import training_camera, transl_offset
 from avatarperfect_cli.training import metrics
 
 WHITE = torch.ones(3)
@@ -43,25 +43,35 @@ def evaluate(
     iteration: int | None = None,
     frames: FrameRange | None = None,
     progress: bool = True,
+    poses: str = "auto",
 ) -> dict:
     """Evaluate avatar `iteration` (default: the latest) on `test_dataset`, at the training resolution.
 
+    The test video's poses: "auto" (poses/anim_nerf_test.npz, else poses_optimized.npz, else poses.npz) or a
+    pose file relative to the test dataset; their translations move by the workspace's transl_offset
+    (the test poses come from the same fitting as the training ones).
     The test video is downscaled by the training video's factor and must then have the training size;
     another resolution is refused (one line) rather than scored at a different size.
     Writes ws/eval/NNN/<test folder name>/metrics.json (per frame and mean) and comparison.png;
     returns the metrics.
     """
     with locked_workspace(workspace_root) as workspace:
-        return _evaluate(workspace, test_dataset, iteration, frames, progress)
+        return _evaluate(workspace, test_dataset, iteration, frames, progress, poses)
 
 
-def _evaluate(workspace: Workspace, test_dataset: Path, iteration: int | None, frames: FrameRange | None, progress: bool) -> dict:
+def _evaluate(
+    workspace: Workspace, test_dataset: Path, iteration: int | None, frames: FrameRange | None, progress: bool, poses: str
+) -> dict:
     avatar = Avatar.load(workspace.require_avatar(iteration))
     out_dir = workspace.eval_dir(iteration) / Path(test_dataset).resolve().name
     check_writable_folder(out_dir.parent)
     trained = training_camera(workspace)
     downscale = _training_downscale(workspace)
-    test = load_people_snapshot(test_dataset, frames, downscale=downscale)
+    test = load_people_snapshot(test_dataset, frames, "test", downscale, pose_source=poses)
+    test.transl = test.transl + transl_offset(workspace)
+    if progress:
+        for note in test.notes:
+            Console(stderr=True, soft_wrap=True).print(note, markup=False, highlight=False)
     if (test.camera.width, test.camera.height) != (trained.width, trained.height):
         raise InputFileError(
             test_dataset,
@@ -91,6 +101,7 @@ def _evaluate(workspace: Workspace, test_dataset: Path, iteration: int | None, f
     result = {
         "iteration": workspace.iteration if iteration is None else iteration,
         "test_dataset": str(Path(test_dataset).resolve()),
+        "poses": test.pose_file,
         "frames": len(per_frame),
         "mean": mean,
         "per_frame": per_frame,

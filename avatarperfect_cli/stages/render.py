@@ -27,11 +27,12 @@ from rich.progress import track
 
 from avatarperfect_cli.avatar.model import Avatar
 from avatarperfect_cli.avatar.rendering import render_avatar
+from avatarperfect_cli.body import axis_angle_to_matrix
 from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
 from avatarperfect_cli.gaussians import Gaussians
 from avatarperfect_cli.io import atomic_path, read_camera, read_gaussians, read_pose, write_image
 from avatarperfect_cli.io.atomic import staging_dir
-from avatarperfect_cli.io.motion import read_motion
+from avatarperfect_cli.io.motion import UP_AXES, detect_up_axis, place_motion, read_motion
 from avatarperfect_cli.io.outputs import check_writable_folder, check_writable_output, write_image_pair
 from avatarperfect_cli.io.pose_json import NUM_JOINTS
 from avatarperfect_cli.io.workspace import MANIFEST, open_workspace
@@ -186,7 +187,7 @@ def _is_frames_entry(entry: os.DirEntry) -> bool:
 
 
 @contextmanager
-def _frame_writer(output: Path, width: int, height: int, fps: float) -> Iterator[Callable[[torch.Tensor], None]]:
+def frame_writer(output: Path, width: int, height: int, fps: float) -> Iterator[Callable[[torch.Tensor], None]]:
     """A function that appends one frame (H, W, 3) in [0, 1] to the .mp4 or frames folder `output`, which
     appears complete when the block succeeds and not at all (or unchanged) when it fails."""
     try:
@@ -267,18 +268,23 @@ def render_avatar_views(
     fps: float = 30.0,
     progress: bool = True,
     force: bool = False,
+    up: str | None = None,
 ) -> None:
     """Render a skinned avatar (workspace or avatar PLY) posed by a pose JSON, a motion file, or on a turntable.
 
     pose:      one image (the pose JSON's own camera) to `output` (.png) and its alpha beside it
-    motion:    one frame per motion pose, seen by `camera_path` or the workspace's training camera; the
-               motion starts where the training subject stood (its translation is taken relative to
-               its first frame)
+    motion:    one frame per motion pose, seen by `camera_path` or the workspace's training camera, placed
+               by io.motion.place_motion: upright (the motion's up axis `up`, a key of UP_AXES, or detected
+               from its first frame), facing the camera, its first frame's root where the training video's
+               first frame had it (the origin for an avatar PLY), and its root path relative to its first
+               frame, turned the same way
     turntable: that many frames of a camera circling the avatar in the training video's first pose
     Frames stream to an .mp4 or a frames folder (`force`: see the module doc). Outputs are checked before
     any work; a warning goes to stderr for renders that show none of the avatar.
     """
     background_color = parse_background(background)
+    if up is not None and (motion is None or up not in UP_AXES):
+        raise AvatarPerfectError(f"--up {up}: give y, -y or z, with --motion")
     if pose is not None:
         _require_png(output)
         check_writable_output(output)
@@ -306,14 +312,18 @@ def render_avatar_views(
         raise AvatarPerfectError(f"{source}: an avatar PLY needs --camera for --motion and --turntable")
     if motion is not None:
         body_poses, transl = read_motion(motion)
-        transl = transl - transl[:1] + reference_transl
+        world_up = axis_angle_to_matrix(reference_body_pose[0])[:, 1]  # how the training subject stood
+        toward_camera = camera.center - (reference_transl + avatar.rest_joints[0])
+        body_poses, transl = place_motion(
+            body_poses, transl, up or detect_up_axis(body_poses, motion), world_up, toward_camera, reference_transl
+        )
         views = [(body_poses[t], transl[t], camera) for t in range(len(body_poses))]
     else:
         center = reference_transl + avatar.rest_joints[0]
         views = [(reference_body_pose, reference_transl, c) for c in orbit_cameras(camera, center, turntable)]
     empty = 0
     console = Console(stderr=True)
-    with _frame_writer(output, camera.width, camera.height, fps) as write, torch.no_grad():
+    with frame_writer(output, camera.width, camera.height, fps) as write, torch.no_grad():
         for body_pose, translation, view_camera in track(views, "rendering", console=console, disable=not progress):
             out = render_avatar(avatar, body_pose, translation, view_camera, background_color)
             empty += _is_empty(out)

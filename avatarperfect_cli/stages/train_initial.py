@@ -7,6 +7,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+import torch
 from rich.console import Console
 
 from avatarperfect_cli.avatar.model import Avatar
@@ -17,22 +18,45 @@ from avatarperfect_cli.io.atomic import atomic_path
 from avatarperfect_cli.io.camera_json import camera_to_json
 from avatarperfect_cli.io.workspace import check_new_workspace, new_workspace, workspace_lock
 from avatarperfect_cli.training.pose_refinement import PoseRefiner
+from avatarperfect_cli.training.template_offset import fit_transl_offset
 from avatarperfect_cli.training.trainer import TrainConfig, train, video_views
 
 # With --refine-poses: the video's refined poses (frame_ids (T,), body_pose (T, 24, 3), transl (T, 3)).
 REFINED_POSES = "poses.npz"
 
 
+# --transl-offset: fit it when the poses were fitted for another body (auto), always (fit), or take it as given.
+AUTO_OFFSET, FIT_OFFSET = "auto", "fit"
+
+
+def parse_transl_offset(text: str) -> str | tuple[float, float, float]:
+    """'auto', 'fit', 'off' (no offset) or 'X,Y,Z' in metres -> AUTO_OFFSET, FIT_OFFSET or the offset."""
+    if text in (AUTO_OFFSET, FIT_OFFSET):
+        return text
+    if text == "off":
+        return (0.0, 0.0, 0.0)
+    try:
+        values = tuple(float(part) for part in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(np.isfinite(values)):
+        raise AvatarPerfectError(f"--transl-offset '{text}' is not auto, fit, off or X,Y,Z in metres")
+    return values  # type: ignore[return-value]
+
+
 @dataclass
 class VideoSettings:
     """Which part of a People-Snapshot folder to use, at which size.
 
-    frames:     frame range, None for every frame
+    frames:     frame range, None for every frame (or, with a split file, the split's frames)
     resolution: longest image side in pixels after integer downscaling; None keeps the native size
+    poses:      "auto" (poses/anim_nerf_train.npz, else poses_optimized.npz, else poses.npz) or a pose file,
+                relative to the dataset or absolute
     """
 
     frames: FrameRange | None = None
     resolution: int | None = None
+    poses: str = "auto"
 
     def downscale(self, root: Path) -> int:
         if self.resolution is None:
@@ -41,15 +65,22 @@ class VideoSettings:
         return max(1, round(max(camera.width, camera.height) / self.resolution))
 
     def load(self, root: Path) -> VideoDataset:
-        return load_people_snapshot(root, self.frames, downscale=self.downscale(root))
+        return load_people_snapshot(root, self.frames, "train", self.downscale(root), pose_source=self.poses)
 
 
 @dataclass
 class BodySettings:
-    """The body model the avatar's template comes from. A dataset's subject.json takes precedence."""
+    """The body model the avatar's template comes from. A dataset's subject.json takes precedence.
+
+    transl_offset: what to add to the dataset's translations so the template lands on the subject
+                   (training/template_offset.py): AUTO_OFFSET fits it when the template is not SMPL and the
+                   dataset's poses were not made for it (no subject.json naming its body model), FIT_OFFSET
+                   always fits it, a tuple gives it in metres (world frame)
+    """
 
     name: str = "anny"
     smpl_model_dir: Path | None = None
+    transl_offset: str | tuple[float, float, float] = AUTO_OFFSET
 
     def template(self, video: VideoDataset) -> tuple[BodyTemplate, dict]:
         """The template and the JSON description stored in the avatar."""
@@ -62,6 +93,22 @@ class BodySettings:
             template = load_body_template("smpl", smpl_model_dir=self.smpl_model_dir, betas=betas)
             return template, {"name": "smpl", "betas": betas}
         return load_body_template(self.name), {"name": self.name}
+
+    def offset(self, template: BodyTemplate, body_model: dict, video: VideoDataset, console: Console) -> torch.Tensor:
+        """(3,) metres: the translation offset for `template` under the video's poses (see transl_offset)."""
+        if isinstance(self.transl_offset, tuple):
+            return torch.tensor(self.transl_offset, dtype=torch.float32)
+        poses_for_template = body_model["name"] == "smpl" or (video.subject or {}).get("body_model") == body_model["name"]
+        if self.transl_offset == AUTO_OFFSET and poses_for_template:
+            return torch.zeros(3)
+        fit = fit_transl_offset(template, video)
+        x, y, z = fit.offset.tolist()
+        console.print(
+            f"template offset ({x:+.3f}, {y:+.3f}, {z:+.3f}) m: the {body_model['name']} template on the masks "
+            f"(mean IoU {fit.iou:.2f}); --transl-offset sets it",
+            soft_wrap=True,
+        )
+        return fit.offset
 
 
 @dataclass
@@ -92,7 +139,11 @@ def _train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool,
     check_new_workspace(workspace, force)
     console = Console(stderr=True, quiet=not progress)
     video = fit.video.load(dataset)
+    for note in video.notes:
+        console.print(note, soft_wrap=True, markup=False, highlight=False)
     template, body_model = fit.body.template(video)
+    offset = fit.body.offset(template, body_model, video, console)
+    video.transl = video.transl + offset
     avatar = Avatar.from_template(template, sh_degree=fit.sh_degree, body_model=body_model)
     console.print(f"fitting {len(avatar):,} Gaussians to {len(video)} frames of {video.camera.width}x{video.camera.height}")
     config = TrainConfig(iterations=fit.iterations, seed=fit.seed)
@@ -104,6 +155,8 @@ def _train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool,
     manifest = {
         "dataset": str(Path(dataset).resolve()),
         "frames": None if fit.video.frames is None else asdict(fit.video.frames),
+        "poses": video.pose_file,
+        "transl_offset": offset.tolist(),
         "downscale": fit.video.downscale(dataset),
         "camera": camera_to_json(video.camera),
         "body_model": body_model,

@@ -48,16 +48,36 @@ def reference_pose(workspace: Workspace) -> PoseFile:
         raise InputFileError(workspace.root / MANIFEST, "manifest 'reference_pose' is missing or malformed") from None
 
 
+def transl_offset(workspace: Workspace) -> torch.Tensor:
+    """(3,) metres: what train-initial added to the dataset's translations so the template lands on the
+    subject (manifest "transl_offset"; zeros for workspaces from before it was recorded)."""
+    offset = workspace.manifest.get("transl_offset", [0.0, 0.0, 0.0])
+    try:
+        values = torch.tensor(offset, dtype=torch.float32)
+    except (TypeError, ValueError):
+        values = torch.empty(0)
+    if values.shape != (3,) or not values.isfinite().all():
+        raise InputFileError(workspace.root / MANIFEST, f"'transl_offset' must be 3 finite numbers (metres), got {offset!r}")
+    return values
+
+
 def load_video(workspace: Workspace, with_images: bool = True) -> VideoDataset:
-    """The workspace's training video at its training resolution, with the refined poses where
-    `train-initial --refine-poses` saved them; one line naming the manifest if the dataset moved."""
+    """The workspace's training video at its training resolution, from the pose file it trained on, its
+    translations moved by the workspace's offset, with the refined poses where `train-initial
+    --refine-poses` saved them; one line naming the manifest if the dataset moved."""
     manifest = workspace.manifest
     dataset = Path(str(manifest.get("dataset", "")))
     if not dataset.is_dir():
         raise InputFileError(workspace.root / MANIFEST, f"its dataset {dataset} is missing (moved or deleted?)")
     frames = manifest.get("frames")
     frame_range = None if frames is None else FrameRange(**frames)
-    video = load_people_snapshot(dataset, frame_range, downscale=int(manifest.get("downscale", 1)), with_images=with_images)
+    poses = manifest.get("poses")  # absent in workspaces from before it was recorded: the loader's old choice
+    if poses is not None and not isinstance(poses, str):
+        raise InputFileError(workspace.root / MANIFEST, f"'poses' must name the pose file, got {poses!r}")
+    video = load_people_snapshot(
+        dataset, frame_range, downscale=int(manifest.get("downscale", 1)), pose_source=poses or "auto", with_images=with_images
+    )
+    video.transl = video.transl + transl_offset(workspace)
     refined = manifest.get("refined_poses")
     if refined:
         path = workspace.root / refined

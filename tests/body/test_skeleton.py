@@ -287,7 +287,9 @@ def test_auto_backend_is_numba_on_the_cpu_and_unknown_backends_are_refused() -> 
 def test_torch_skinning_gradcheck() -> None:
     means, quats, weights, transforms = _skinning_case(6, torch.float64, 15)
 
-    def skin(means: torch.Tensor, quats: torch.Tensor, weights: torch.Tensor, transforms: torch.Tensor):
+    def skin(
+        means: torch.Tensor, quats: torch.Tensor, weights: torch.Tensor, transforms: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         return skin_gaussians(means, quats, weights, transforms, backend="torch")
 
     inputs = tuple(tensor.requires_grad_() for tensor in (means, quats, weights, transforms))

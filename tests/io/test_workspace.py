@@ -128,7 +128,7 @@ def test_lock_cleans_what_a_killed_stage_left(tmp_path: Path):
     with locked_workspace(root) as workspace:
         assert workspace.committed_avatars() == {0}
     assert sorted(p.name for p in (root / "avatar").iterdir()) == ["000.ply"]
-    assert sorted(p.name for p in tmp_path.iterdir()) == [".ws.lock", "ws"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ws"]
 
 
 def test_a_retired_workspace_is_put_back(tmp_path: Path):

@@ -19,7 +19,7 @@ from avatarperfect_cli.refinement.erase import (
     splats_in_region,
 )
 from avatarperfect_cli.render import Camera, look_at
-from tests.refinement.test_visibility import rigid_avatar, rigid_pose
+from tests.refinement.test_visibility import rigid_avatar, rigid_pose, rotation_matrix
 from tests.render.test_max_weight import dense_weights
 
 WIDTH, HEIGHT = 37, 29
@@ -63,14 +63,11 @@ def place_behind_camera(avatar: Avatar, view: PoseFile, count: int) -> None:
     local = torch.cat([offsets * depth[:, None], -depth[:, None]], dim=1)
     view_matrix = view.camera.world_to_camera.double()
     world = (local - view_matrix[:3, 3]) @ view_matrix[:3, :3]
-    rotvec = view.body_pose[0].double()
-    angle = float(rotvec.norm())
-    k = rotvec / angle
-    cross = torch.tensor([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]], dtype=torch.float64)
-    rotation = torch.eye(3, dtype=torch.float64) + math.sin(angle) * cross + (1 - math.cos(angle)) * cross @ cross
+    rotation = rotation_matrix(view.body_pose[0])
     j0 = avatar.rest_joints[0].double()
+    canonical = (world - j0 - view.transl.double()) @ rotation + j0  # the inverse of the rigid pose
     with torch.no_grad():
-        avatar.params["means"][:count] = ((world - j0 - view.transl.double()) @ rotation + j0).to(avatar.params["means"].dtype)
+        avatar.params["means"][:count] = canonical.to(avatar.params["means"].dtype)
 
 
 def brute_force_centres(avatar: Avatar, view: PoseFile, region: torch.Tensor) -> tuple[torch.Tensor, np.ndarray]:

@@ -45,16 +45,22 @@ def rigid_avatar(n: int, seed: int, dtype: torch.dtype = torch.float64, spread: 
     return Avatar({k: v.to(dtype) for k, v in params.items()}, rest_joints.to(dtype), sh_degree=0)
 
 
+def rotation_matrix(rotvec: torch.Tensor) -> torch.Tensor:
+    """(3, 3) float64 rotation of the axis-angle `rotvec` (3,), non-zero (Rodrigues' formula)."""
+    rotvec = rotvec.double()
+    angle = float(rotvec.norm())
+    x, y, z = (rotvec / angle).tolist()
+    cross = torch.tensor([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]], dtype=torch.float64)
+    return torch.eye(3, dtype=torch.float64) + math.sin(angle) * cross + (1 - math.cos(angle)) * cross @ cross
+
+
 def rigid_pose(avatar: Avatar, view: PoseFile) -> tuple[torch.Tensor, torch.Tensor]:
     """Independent float64 posing of a joint-0-only avatar: x -> R (x - j0) + j0 + transl, q -> q_R * q."""
     rotvec = view.body_pose[0].double()
     angle = float(rotvec.norm())
-    axis = rotvec / angle
-    cross = torch.tensor([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]], dtype=torch.float64)
-    rotation = torch.eye(3, dtype=torch.float64) + math.sin(angle) * cross + (1 - math.cos(angle)) * cross @ cross
     j0 = avatar.rest_joints[0].double()
-    means = (avatar.params["means"].detach().double() - j0) @ rotation.T + j0 + view.transl.double()
-    w1, (x1, y1, z1) = math.cos(angle / 2), (math.sin(angle / 2) * axis).tolist()
+    means = (avatar.params["means"].detach().double() - j0) @ rotation_matrix(rotvec).T + j0 + view.transl.double()
+    w1, (x1, y1, z1) = math.cos(angle / 2), (math.sin(angle / 2) * rotvec / angle).tolist()
     w2, x2, y2, z2 = avatar.params["quats"].detach().double().unbind(-1)
     quats = torch.stack([
         w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
@@ -93,25 +99,25 @@ def brute_force_visibility(avatar: Avatar, view: PoseFile) -> torch.Tensor:
 
 
 def brute_force_combined(video: list[torch.Tensor], edits: list[torch.Tensor], edit_weight: float) -> torch.Tensor:
-    """(1 - w) * mean of the video's per-view visibilities + w * mean of the edits' (the video's alone without edits)."""
+    """(1 - w) * mean of the video's per-view visibilities + w * mean of the edits' (the video's alone without
+    edits)."""
     video_mean = sum(video) / len(video)
     if not edits:
         return video_mean
     return (1 - edit_weight) * video_mean + edit_weight * sum(edits) / len(edits)
 
 
-def brute_force_accumulated(avatar: Avatar, video: list[PoseFile], edits: list[PoseFile], edit_weight: float):
-    per_view = [brute_force_visibility(avatar, view) for view in video], [brute_force_visibility(avatar, view) for view in edits]
-    return brute_force_combined(*per_view, edit_weight)
+def brute_force_per_view(avatar: Avatar, views: list[PoseFile]) -> list[torch.Tensor]:
+    return [brute_force_visibility(avatar, view) for view in views]
 
 
 @pytest.fixture(scope="module")
 def scene():
     """The avatar, 3 video views, 2 edit views and the brute-force visibilities of each view."""
     avatar = rigid_avatar(48, seed=0)
-    video, edits = random_views(3, seed=1, center=avatar.rest_joints[0]), random_views(2, seed=2, center=avatar.rest_joints[0])
-    brute = [brute_force_visibility(avatar, view) for view in video], [brute_force_visibility(avatar, view) for view in edits]
-    return avatar, video, edits, brute
+    video = random_views(3, seed=1, center=avatar.rest_joints[0])
+    edits = random_views(2, seed=2, center=avatar.rest_joints[0])
+    return avatar, video, edits, (brute_force_per_view(avatar, video), brute_force_per_view(avatar, edits))
 
 
 def test_brute_force_scene_is_not_trivial(scene) -> None:
@@ -148,7 +154,7 @@ def test_float32_avatar_matches_brute_force() -> None:
     avatar32 = rigid_avatar(48, seed=3, dtype=torch.float32)
     video = random_views(3, seed=4, center=avatar64.rest_joints[0], dtype=torch.float32)
     edits = random_views(2, seed=5, center=avatar64.rest_joints[0], dtype=torch.float32)
-    expected = brute_force_accumulated(avatar64, video, edits, 0.2)
+    expected = brute_force_combined(brute_force_per_view(avatar64, video), brute_force_per_view(avatar64, edits), 0.2)
     actual = accumulate_visibility(avatar32, video, edits, 0.2)
     assert actual.dtype == torch.float64
     torch.testing.assert_close(actual, expected, rtol=1e-3, atol=1e-3 * float(expected.max()))
@@ -158,12 +164,8 @@ def test_world_transform_equals_moving_the_camera_the_other_way(scene) -> None:
     """Posing then applying a rigid world transform W, seen by camera C, is the plain pose seen by C @ W."""
     avatar, video, _, _ = scene
     view = video[0]
-    axis_angle = torch.tensor([0.2, -0.7, 0.4], dtype=torch.float64)
-    angle = float(axis_angle.norm())
-    k = axis_angle / angle
-    cross = torch.tensor([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]], dtype=torch.float64)
     world = torch.eye(4, dtype=torch.float64)
-    world[:3, :3] = torch.eye(3, dtype=torch.float64) + math.sin(angle) * cross + (1 - math.cos(angle)) * cross @ cross
+    world[:3, :3] = rotation_matrix(torch.tensor([0.2, -0.7, 0.4]))
     world[:3, 3] = torch.tensor([0.05, -0.1, 0.08], dtype=torch.float64)
     moved_camera = Camera(view.camera.K, view.camera.world_to_camera.double() @ world, WIDTH, HEIGHT)
     expected = brute_force_visibility(avatar, PoseFile(view.body_pose, view.transl, moved_camera))

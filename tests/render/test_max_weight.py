@@ -42,8 +42,11 @@ def dense_weights(params: list[torch.Tensor], camera: Camera) -> torch.Tensor:
     return weights.reshape(camera.height, camera.width, -1)
 
 
-def kernel_weights(params: list[torch.Tensor], camera: Camera, region: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-    means, quats, scales, opacities = (p.to(dtype) for p in params)
+def kernel_weights(
+    params: list[torch.Tensor], camera: Camera, region: torch.Tensor, dtype: torch.dtype
+) -> torch.Tensor:
+    """(N,) `max_weight_in_region` of the Gaussians `params` projected by `camera`, in `dtype`."""
+    means, quats, scales, opacities = (param.to(dtype) for param in params)
     projection = project_gaussians(means, quats, scales, opacities, camera.to(dtype=dtype))
     return max_weight_in_region(
         projection.means2d, projection.conics, opacities, projection.extents, projection.depths, projection.drawn, region

@@ -234,3 +234,28 @@ def test_simulate_user_refuses_a_real_dataset(workspace: Path, tmp_path: Path):
     real = tmp_path / "real"
     real.mkdir()
     assert "not a synthetic subject" in one_line_error(invoke("simulate-user", workspace, "--subject", real))
+
+
+def test_two_rounds_of_the_loop_and_the_report(workspace: Path, tmp_path: Path):
+    """What `make demo` runs, small: rounds of visibility, suggest, simulated painting, apply-edit, refine."""
+    painted = tmp_path / "painted.png"
+    for _ in range(2):
+        for command in (
+            ("visibility", workspace),
+            ("suggest", workspace, *FAST_SUGGEST),
+            ("simulate-user", workspace, "--subject", SAMPLE, "-o", painted),
+            ("apply-edit", workspace, painted),
+            ("refine", workspace, "--iterations", "10"),
+        ):
+            result = invoke(*command)
+            assert result.exit_code == 0, (command, result.output)
+    assert open_workspace(workspace).iteration == 2
+    report = tmp_path / "report"
+    result = invoke("report", workspace, "--test", SAMPLE / "test", "-o", report)
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in report.iterdir()) == ["comparison.mp4", "metrics.png", "suggestions.png"]
+    for iteration in range(3):
+        metrics = json.loads((workspace / "eval" / f"{iteration:03d}" / "test" / "metrics.json").read_text())["mean"]
+        assert all(np.isfinite(value) for value in metrics.values())
+    sheet = read_image(report / "suggestions.png")
+    assert sheet.shape[:2] == (2 * 64, 4 * 64)

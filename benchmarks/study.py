@@ -1,0 +1,259 @@
+"""The paper's user study (Table 2), reproduced with a simulated user on synthetic subjects.
+
+    python benchmarks/study.py OUT_DIR [--presets default female tall] [--rounds 5] [--resolution 512]
+
+For each subject (a make-sample preset) one initial avatar is trained (2000 iterations), then every
+condition runs `--rounds` rounds on its own copy of it:
+    initial        no edits
+    ap-exact       AvatarPerfect: suggested body pose + camera, simulated user with the true colours, refine
+    ap-flat        the same with the flat-colour user (each blob its mean colour: the inpaint tool)
+    random         random natural pose + camera, exact user, refine (is the suggestion worth it?)
+    canonical      canonical pose, suggested camera only, exact user, refine (is the body pose worth it?)
+    erase-center   SuperSplat: canonical pose, the worst of 12 orbit views, erase the Gaussians whose
+                   centres fall where the simulated user paints background; no training
+    erase-splat    the same with Erase Splat (visibility > 0.01 at a selected pixel)
+Columns: held-out IoU, PSNR, SSIM (full frame on white, as the paper), PSNR on the subject's bounding
+box, PSNR over the hidden regions (inner arms, armpits, crotch), training-frame PSNR change (worst
+round), Gaussians deleted, seconds per round (suggest + refine, not the user). Writes OUT_DIR/study.md
+(the tables, as in docs/study.md), OUT_DIR/study.json and OUT_DIR/images/*.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shutil
+import statistics
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from avatarperfect_cli.avatar.model import Avatar
+from avatarperfect_cli.avatar.rendering import render_avatar
+from avatarperfect_cli.datasets import load_people_snapshot
+from avatarperfect_cli.io import PoseFile, read_image, write_image
+from avatarperfect_cli.io.workspace import open_workspace
+from avatarperfect_cli.refinement.suggest import SuggestConfig
+from avatarperfect_cli.render.camera import rotation_about
+from avatarperfect_cli.sample.generate import make_sample
+from avatarperfect_cli.sample.simulated_user import UserConfig, paint
+from avatarperfect_cli.sample.subject import SyntheticSubject
+from avatarperfect_cli.sample.texture import HIDDEN_REGIONS, REGION
+from avatarperfect_cli.stages.apply_edit import apply_edit, erase_region
+from avatarperfect_cli.stages.refine import RefineSettings, refine
+from avatarperfect_cli.stages.simulate_user import simulate_user
+from avatarperfect_cli.stages.suggest import SuggestSettings, suggest
+from avatarperfect_cli.stages.train_initial import InitialFit, VideoSettings, train_initial
+from avatarperfect_cli.stages.visibility import visibility
+from avatarperfect_cli.stages.workspace_data import reference_pose
+from avatarperfect_cli.training import metrics
+
+WHITE = torch.ones(3)
+CONDITIONS = ("initial", "ap-exact", "ap-flat", "random", "canonical", "erase-center", "erase-splat")
+LOOP_CONDITIONS = {"ap-exact": ("optimise", "exact"), "ap-flat": ("optimise", "flat"),
+                   "random": ("random", "exact"), "canonical": ("canonical", "exact")}  # fmt: skip
+ORBIT_VIEWS = 12
+SHOWN_FRAMES = (3, 12, 18, 27)  # held-out frames in the pictures: walking, arms raised, legs apart, squat
+
+
+@dataclass
+class HeldOut:
+    """The held-out video with the exact hidden-region pixels of every frame."""
+
+    images: torch.Tensor
+    masks: torch.Tensor
+    hidden: torch.Tensor
+    poses: list[PoseFile]
+
+
+def held_out(sample: Path, downscale: int) -> HeldOut:
+    test = load_people_snapshot(sample / "test", downscale=downscale)
+    subject = SyntheticSubject.from_dataset(sample / "test")
+    labels = [torch.from_numpy(subject.render(test.body_pose[t], test.transl[t], test.camera).labels) for t in range(len(test))]
+    hidden = torch.stack([torch.isin(label, torch.tensor([REGION[n] for n in HIDDEN_REGIONS])) for label in labels])
+    poses = [PoseFile(test.body_pose[t], test.transl[t], test.camera) for t in range(len(test))]
+    return HeldOut(test.images, test.masks, hidden, poses)
+
+
+def masked_psnr(render: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor) -> float:
+    if not mask.any():
+        return math.nan
+    mse = float(((render.double() - truth.double()) ** 2)[mask].mean())
+    return math.inf if mse == 0 else -10 * math.log10(mse)
+
+
+def score(avatar: Avatar, data: HeldOut) -> tuple[dict[str, float], list[torch.Tensor]]:
+    """Mean held-out metrics of `avatar`, and its renders of SHOWN_FRAMES."""
+    rows, shown = [], []
+    hidden_errors, hidden_pixels = 0.0, 0
+    with torch.no_grad():
+        for t, pose in enumerate(data.poses):
+            out = render_avatar(avatar, pose.body_pose, pose.transl, pose.camera, WHITE)
+            render, truth = out.image.clamp(0, 1), data.images[t]
+            box = torch.zeros_like(data.masks[t])
+            rows_any, cols_any = data.masks[t].any(dim=1).nonzero(), data.masks[t].any(dim=0).nonzero()
+            box[int(rows_any[0]) : int(rows_any[-1]) + 1, int(cols_any[0]) : int(cols_any[-1]) + 1] = True
+            rows.append({
+                "iou": metrics.iou(out.alpha > 0.5, data.masks[t]), "psnr": metrics.psnr(render, truth),
+                "ssim": metrics.ssim(render, truth), "psnr_bbox": masked_psnr(render, truth, box),
+            })  # fmt: skip
+            hidden_errors += float(((render.double() - truth.double()) ** 2)[data.hidden[t]].sum())
+            hidden_pixels += int(data.hidden[t].sum()) * 3
+            if t in SHOWN_FRAMES:
+                shown.append(render)
+    mean = {key: statistics.fmean(row[key] for row in rows) for key in rows[0]}
+    mean["psnr_hidden"] = -10 * math.log10(hidden_errors / max(hidden_pixels, 1))  # over all hidden pixels together
+    return mean, shown
+
+
+def training_psnr(avatar: Avatar, train: HeldOut) -> float:
+    with torch.no_grad():
+        return statistics.fmean(
+            metrics.psnr(render_avatar(avatar, p.body_pose, p.transl, p.camera, WHITE).image.clamp(0, 1), train.images[t])
+            for t, p in enumerate(train.poses)
+        )
+
+
+def worst_orbit_region(ws: Path, subject: SyntheticSubject, scratch: Path) -> tuple[Path, Path]:
+    """SuperSplat's condition: the canonical pose seen from the worst of ORBIT_VIEWS horizontal orbit views
+    (the most pixels the simulated user would paint background); returns (pose.json, region.png) with the
+    region the simulated user paints background in that view."""
+    from avatarperfect_cli.io import write_pose
+
+    workspace = open_workspace(ws)
+    avatar = Avatar.load(workspace.require_avatar())
+    reference = reference_pose(workspace)
+    camera = reference.camera
+    up = -camera.world_to_camera[1, :3].float()
+    center = reference.transl + avatar.rest_joints[0]
+    best = None
+    for k in range(ORBIT_VIEWS):
+        spin = rotation_about(up, torch.tensor(2 * math.pi * k / ORBIT_VIEWS))
+        view = camera.world_to_camera.clone().float()
+        view[:3, :3] = view[:3, :3] @ spin.T
+        view[:3, 3] = -view[:3, :3] @ (center + spin @ (camera.center.float() - center))
+        pose = PoseFile(reference.body_pose, reference.transl, type(camera)(camera.K, view, camera.width, camera.height))
+        with torch.no_grad():
+            out = render_avatar(avatar, pose.body_pose, pose.transl, pose.camera, WHITE)
+        image = torch.round(out.image.clamp(0, 1) * 255) / 255
+        result = paint(image, out.alpha, subject.render(pose.body_pose, pose.transl, pose.camera), UserConfig())
+        region = (result.stroke_weight >= 0.5) & (result.image >= 0.99).all(dim=-1) & (image < 0.99).any(dim=-1)
+        if best is None or int(region.sum()) > best[0]:
+            best = (int(region.sum()), pose, region)
+    assert best is not None
+    write_pose(scratch / "orbit_pose.json", best[1])
+    write_image(scratch / "orbit_region.png", best[2].float()[..., None])
+    return scratch / "orbit_pose.json", scratch / "orbit_region.png"
+
+
+def run_condition(name: str, initial: Path, out: Path, sample: Path, subject: SyntheticSubject, train: HeldOut,
+                  rounds: int, base_train_psnr: float) -> dict:  # fmt: skip
+    ws = out / name
+    shutil.rmtree(ws, ignore_errors=True)
+    shutil.copytree(initial, ws)
+    round_seconds, train_drops = [], []
+    scratch = out / f"{name}-scratch"
+    scratch.mkdir(exist_ok=True)
+    for round_index in range(rounds if name != "initial" else 0):
+        start = time.perf_counter()
+        if name in LOOP_CONDITIONS:
+            mode, style = LOOP_CONDITIONS[name]
+            visibility(ws, progress=False)
+            suggest(ws, SuggestSettings(SuggestConfig(body_pose=mode, seed=round_index)), progress=False)
+            user_start = time.perf_counter()
+            simulate_user(ws, sample, UserConfig(style=style), output=scratch / "painted.png", progress=False)
+            apply_edit(ws, scratch / "painted.png", progress=False)
+            user_seconds = time.perf_counter() - user_start
+            refine(ws, RefineSettings(seed=round_index), progress=False)
+        else:
+            user_start = time.perf_counter()
+            pose, region = worst_orbit_region(ws, subject, scratch)
+            user_seconds = time.perf_counter() - user_start
+            if read_image(region, "L").max() < 0.5:
+                round_seconds.append(time.perf_counter() - start - user_seconds)
+                continue  # nothing the user would erase
+            erase_region(ws, region, name.removeprefix("erase-"), pose, progress=False)
+        round_seconds.append(time.perf_counter() - start - user_seconds)
+        avatar = Avatar.load(open_workspace(ws).require_avatar())
+        train_drops.append(training_psnr(avatar, train) - base_train_psnr)
+        print(f"    {name} round {round_index + 1}: {round_seconds[-1]:.1f} s, training PSNR change {train_drops[-1]:+.3f} dB", flush=True)
+    history = open_workspace(ws).manifest["history"]
+    return {
+        "workspace": ws,
+        "deleted": sum(entry.get("deleted", 0) for entry in history),
+        "seconds_per_round": statistics.fmean(round_seconds) if round_seconds else 0.0,
+        "worst_training_change": min(train_drops) if train_drops else 0.0,
+    }
+
+
+def run_subject(preset: str, out: Path, rounds: int, resolution: int, iterations: int) -> dict:
+    out.mkdir(parents=True, exist_ok=True)
+    sample = out / "sample"
+    if not (sample / "test" / "subject.json").is_file():
+        make_sample(sample, preset, resolution)
+    initial = out / "initial-ws"
+    if not (initial / "workspace.json").is_file():
+        start = time.perf_counter()
+        train_initial(sample / "train", initial, InitialFit(VideoSettings(), iterations=iterations), force=True, progress=False)
+        print(f"  {preset}: initial avatar trained in {time.perf_counter() - start:.0f} s", flush=True)
+    data = held_out(sample, 1)
+    train_video = load_people_snapshot(sample / "train", downscale=1)
+    train = HeldOut(train_video.images, train_video.masks, torch.zeros(0),
+                    [PoseFile(train_video.body_pose[t], train_video.transl[t], train_video.camera) for t in range(len(train_video))])  # fmt: skip
+    subject = SyntheticSubject.from_dataset(sample / "train")
+    base_train_psnr = training_psnr(Avatar.load(open_workspace(initial).require_avatar()), train)
+    results, pictures = {}, {}
+    for name in CONDITIONS:
+        info = run_condition(name, initial, out, sample, subject, train, rounds, base_train_psnr)
+        mean, shown = score(Avatar.load(open_workspace(info.pop("workspace")).require_avatar()), data)
+        results[name] = {**mean, **info}
+        pictures[name] = shown
+        print(f"  {preset} {name}: PSNR {mean['psnr']:.2f} dB, hidden {mean['psnr_hidden']:.2f} dB, IoU {mean['iou']:.4f}", flush=True)
+    truth = [data.images[t] for t in SHOWN_FRAMES]
+    grid = torch.cat([torch.cat(truth, dim=1)] + [torch.cat(pictures[name], dim=1) for name in CONDITIONS], dim=0)
+    (out.parent / "images").mkdir(exist_ok=True)
+    write_image(out.parent / "images" / f"study_{preset}.png", torch.nn.functional.interpolate(
+        grid.permute(2, 0, 1)[None], scale_factor=0.5, mode="area")[0].permute(1, 2, 0))  # fmt: skip
+    return results
+
+
+COLUMNS = (("iou", "IoU", "{:.4f}"), ("psnr", "PSNR", "{:.2f}"), ("ssim", "SSIM", "{:.4f}"), ("psnr_bbox", "PSNR box", "{:.2f}"),
+           ("psnr_hidden", "PSNR hidden", "{:.2f}"), ("worst_training_change", "train dPSNR", "{:+.2f}"),
+           ("deleted", "deleted", "{:.0f}"), ("seconds_per_round", "s/round", "{:.1f}"))  # fmt: skip
+
+
+def markdown_table(results: dict[str, dict]) -> str:
+    lines = ["| condition | " + " | ".join(title for _, title, _ in COLUMNS) + " |", "|---" * (len(COLUMNS) + 1) + "|"]
+    for name, row in results.items():
+        lines.append(f"| {name} | " + " | ".join(fmt.format(row[key]) for key, _, fmt in COLUMNS) + " |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("out", type=Path)
+    parser.add_argument("--presets", nargs="+", default=["default", "female", "tall"])
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--resolution", type=int, default=512)
+    parser.add_argument("--iterations", type=int, default=2000)
+    args = parser.parse_args()
+    start = time.perf_counter()
+    all_results = {}
+    for preset in args.presets:
+        print(f"subject {preset}", flush=True)
+        all_results[preset] = run_subject(preset, args.out / preset, args.rounds, args.resolution, args.iterations)
+        (args.out / "study.json").write_text(json.dumps(all_results, indent=2))
+    mean = {name: {key: statistics.fmean(all_results[p][name][key] for p in args.presets) for key, _, _ in COLUMNS} for name in CONDITIONS}
+    text = [f"# Study: {len(args.presets)} subjects x {args.rounds} rounds at {args.resolution}², {time.perf_counter() - start:.0f} s\n"]
+    text += [f"## Mean over {', '.join(args.presets)}\n", markdown_table(mean), ""]
+    for preset in args.presets:
+        text += [f"## {preset}\n", markdown_table(all_results[preset]), ""]
+    (args.out / "study.md").write_text("\n".join(text))
+    print("\n".join(text))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,426 @@
+"""The kill harness: each workspace-writing stage, run as a real `python -m avatarperfect_cli` process on a private
+copy of a prepared workspace, killed with SIGINT, SIGTERM or SIGKILL at a seeded random moment, then checked.
+
+A stage is one `Stage` entry in STAGES: its name, `prepare(ws, inputs) -> argv`, and the stage whose finished
+workspace it starts from (`base`). A future stage joins by adding its entry.
+
+Each stage's reference is an uninterrupted run of it, in-process, on its own copy of the base: it is the new
+state and times the kills. What a kill must leave (`Harness.check`):
+- exit status 130 after SIGINT or SIGTERM, or 0 if the stage finished first (two more are accepted: see
+  `_interrupt_status`); SIGKILL: any status;
+- a readable manifest whenever a workspace is at the path (for `train-initial --force`: always one);
+- after the next command (`apply-edit WS --list`, which takes the lock and cleans up): nothing hidden in or
+  beside the workspace (staging folders, temporaries, the lock file), no avatar/NNN.ply the manifest does not
+  commit, and the workspace either byte-identical to before ("old") or completely the new state ("new": the
+  reference's files, the ones the reference left alone byte-identical, the manifest loading, every committed
+  avatar loading, the current one rendering with `render --pose`, every registered edit complete).
+Anything else is "lost".
+
+Kill moments, one phase drawn per kill:
+- "startup": uniform over the time the process usually takes to reach the lock (imports; no stage running);
+- "run": once the lock file appears, uniform over 1.2x the reference's duration (work, saves, or just after);
+- "save": once the lock file appears, inside a randomly chosen save: each new hidden temporary or staging entry
+  is the chosen one with probability 1/2, and the kill lands uniformly inside the SAVE_DELAY seconds that the
+  test hook (io/atomic.py, $AVATARPERFECT_TEST_SAVE_DELAY) sleeps before the save's final rename.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import random
+import shutil
+import signal
+import statistics
+import subprocess
+import sys
+import time
+from collections import Counter
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+from typer.testing import CliRunner
+
+from avatarperfect_cli.avatar.model import Avatar
+from avatarperfect_cli.cli import app
+from avatarperfect_cli.io import read_image, write_image, write_pose
+from avatarperfect_cli.io.atomic import SAVE_DELAY_VARIABLE
+from avatarperfect_cli.io.workspace import lock_path, open_workspace
+from avatarperfect_cli.stages.workspace_data import EDITS, SUGGESTIONS, latest_suggestion, reference_pose
+
+SAMPLE = Path(__file__).resolve().parents[2] / "examples" / "sample"
+TRAIN_ARGS = ["--iterations", "30", "--resolution", "64", "--frames", "0:59:6"]
+FAST_SUGGEST = ["--starts", "1", "--steps", "3", "--resolution", "32"]
+SAVE_DELAY = 0.25  # seconds the test hook sleeps before each final rename
+SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGKILL)
+PHASES = {"startup": 1, "run": 5, "save": 4}  # relative weights
+POLL_S = 0.005
+EDIT_FILES = {"target.png", "mask.png", "background.png", "pose.json", "edit.json"}  # and edited.<suffix>
+WS = "ws"  # the workspace's name inside its private folder ("box"), which holds nothing else
+
+
+def invoke(*args: object):
+    """The CLI in-process (typer's CliRunner)."""
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def snapshot(root: Path) -> dict[str, str]:
+    """Relative path -> sha256 of every file under `root` (empty when `root` is missing)."""
+    if not root.is_dir():
+        return {}
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def hidden_entries(root: Path) -> list[str]:
+    """Paths under `root` whose name starts with a dot (what killed writers leave: staging, temporaries, locks)."""
+    return sorted(str(p.relative_to(root)) for p in root.rglob(".*")) if root.is_dir() else []
+
+
+# ------------------------------------------------------------------------------------------------ the stages
+
+
+@dataclass(frozen=True)
+class Stage:
+    """name: unique label; prepare(ws, inputs) writes any input files under `inputs` and returns the command line
+    (after `avatarperfect`) that runs the stage on workspace `ws`; base: the stage whose finished workspace this
+    one starts from (None: no workspace yet); expected: the stage whose finished workspace is this one's new
+    state (None: its own reference run; then the files that run left alone must stay byte-identical)."""
+
+    name: str
+    prepare: Callable[[Path, Path], list[str]]
+    base: str | None = None
+    expected: str | None = None
+
+
+def _train(*extra: str) -> Callable[[Path, Path], list[str]]:
+    return lambda ws, inputs: ["train-initial", str(SAMPLE / "train"), str(ws), *TRAIN_ARGS, *extra]
+
+
+def _painted_square(ws: Path, inputs: Path) -> list[str]:
+    """Paint a white square over the middle of the latest suggestion (the background tool)."""
+    suggested = read_image(latest_suggestion(open_workspace(ws)) / "suggested.png", "RGB")
+    height, width = suggested.shape[:2]
+    suggested[height * 3 // 8 : height * 5 // 8, width * 3 // 8 : width * 5 // 8] = 1.0
+    write_image(inputs / "edited.png", suggested)
+    return ["apply-edit", str(ws), str(inputs / "edited.png")]
+
+
+def _region(ws: Path, inputs: Path) -> Path:
+    """A selection mask over the middle of the latest suggestion."""
+    height, width = read_image(latest_suggestion(open_workspace(ws)) / "suggested.png", "RGB").shape[:2]
+    region = torch.zeros(height, width, 1)
+    region[height // 4 : height * 3 // 4, width // 3 : width * 2 // 3] = 1.0
+    write_image(inputs / "region.png", region)
+    return inputs / "region.png"
+
+
+STAGES: list[Stage] = [
+    Stage("train-initial", _train()),
+    Stage("visibility", lambda ws, inputs: ["visibility", str(ws)], base="train-initial"),
+    Stage("suggest", lambda ws, inputs: ["suggest", str(ws), *FAST_SUGGEST], base="visibility"),
+    Stage("simulate-user", lambda ws, inputs: ["simulate-user", str(ws), "--subject", str(SAMPLE)], base="suggest"),
+    Stage("apply-edit", _painted_square, base="suggest"),
+    Stage("apply-edit --fill", lambda ws, inputs: ["apply-edit", str(ws), "--region", str(_region(ws, inputs)), "--fill", "white"], base="suggest"),
+    Stage("apply-edit --erase", lambda ws, inputs: ["apply-edit", str(ws), "--region", str(_region(ws, inputs)), "--erase", "center"], base="suggest"),
+    Stage("apply-edit --remove", lambda ws, inputs: ["apply-edit", str(ws), "--remove", "1"], base="apply-edit"),
+    Stage("refine", lambda ws, inputs: ["refine", str(ws), "--iterations", "10"], base="apply-edit"),
+    Stage("refine --revert-to", lambda ws, inputs: ["refine", str(ws), "--revert-to", "0"], base="refine"),
+    Stage("evaluate", lambda ws, inputs: ["evaluate", str(ws), "--test", str(SAMPLE / "test"), "--frames", "0:19:5"], base="refine"),
+    Stage("train-initial --force", _train("--force"), base="refine", expected="train-initial"),
+]
+STAGES_BY_NAME = {stage.name: stage for stage in STAGES}
+
+
+# --------------------------------------------------------------------------------------------- the outcomes
+
+
+@dataclass
+class Outcome:
+    """One kill: the signal, the phase and the moment (seconds after the start; None: the stage finished before
+    its chosen moment), the exit status, the state left ("old", "new" or "lost") and what was wrong."""
+
+    stage: str
+    signal: str
+    phase: str
+    moment: float | None
+    lock_seen: bool
+    exit_status: int
+    state: str
+    problems: list[str] = field(default_factory=list)
+    traceback: bool = False
+    stderr_tail: str = ""
+
+
+def summarise(outcomes: list[Outcome]) -> dict:
+    """Counts per signal: kills, states, exit statuses, and the problems found."""
+    summary: dict = {"kills": len(outcomes), "by_signal": {}, "problems": []}
+    for name in ("SIGINT", "SIGTERM", "SIGKILL"):
+        chosen = [o for o in outcomes if o.signal == name]
+        summary["by_signal"][name] = {
+            "kills": len(chosen),
+            "states": dict(Counter(o.state for o in chosen)),
+            "exit_statuses": {str(k): v for k, v in sorted(Counter(o.exit_status for o in chosen).items())},
+            "phases": dict(Counter(o.phase for o in chosen)),
+        }
+    summary["interrupted_after_commit"] = sum(o.exit_status == 130 and o.state == "new" for o in outcomes)
+    summary["tracebacks"] = sum(o.traceback for o in outcomes)
+    summary["problems"] = [asdict(o) for o in outcomes if o.problems]
+    return summary
+
+
+def markdown_table(results: dict[str, dict]) -> str:
+    """The counts of `summarise` per stage as a markdown table (for docs/reliability.md)."""
+    lines = [
+        "| stage | signal | kills | old state | new state | lost | exit statuses |",
+        "|---|---|---:|---:|---:|---:|---|",
+    ]
+    for stage, summary in results.items():
+        for name, counts in summary["by_signal"].items():
+            states = counts["states"]
+            statuses = ", ".join(f"{status}: {count}" for status, count in counts["exit_statuses"].items())
+            lines.append(
+                f"| {stage} | {name} | {counts['kills']} | {states.get('old', 0)} | {states.get('new', 0)} "
+                f"| {states.get('lost', 0)} | {statuses} |"
+            )
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------------------------ the harness
+
+
+@dataclass
+class Reference:
+    """A stage's uninterrupted run: its finished workspace, the files before and after, its duration."""
+
+    workspace: Path
+    before: dict[str, str]
+    after: dict[str, str]
+    seconds: float
+
+
+@contextmanager
+def save_delay(seconds: float) -> Iterator[None]:
+    """Set the test hook's delay for in-process runs."""
+    previous = os.environ.get(SAVE_DELAY_VARIABLE)
+    os.environ[SAVE_DELAY_VARIABLE] = str(seconds)
+    try:
+        yield
+    finally:
+        if previous is None:
+            del os.environ[SAVE_DELAY_VARIABLE]
+        else:
+            os.environ[SAVE_DELAY_VARIABLE] = previous
+
+
+class Harness:
+    """Runs and checks kills under `root`; builds each stage's reference once, in-process, when first needed."""
+
+    def __init__(self, root: Path, stages: list[Stage] = STAGES) -> None:
+        self.root = root
+        self.stages = {stage.name: stage for stage in stages}
+        self.references: dict[str, Reference] = {}
+        self.rendered: set[str] = set()  # avatar hashes already rendered by `render --pose`
+        self.startup_seconds: list[float] = []  # time from the start to the lock file, per run
+
+    def reference(self, name: str) -> Reference:
+        if name not in self.references:
+            stage = self.stages[name]
+            box, inputs = self._fresh(self.root / "references" / name, stage)
+            workspace = box / WS
+            argv = stage.prepare(workspace, inputs)
+            before = snapshot(workspace)
+            start = time.perf_counter()
+            with save_delay(SAVE_DELAY):
+                result = invoke(*argv)
+            seconds = time.perf_counter() - start
+            assert result.exit_code == 0, f"reference run of {name} failed: {result.output}"
+            assert invoke("apply-edit", workspace, "--list").exit_code == 0
+            self.references[name] = Reference(workspace, before, snapshot(workspace), seconds)
+        return self.references[name]
+
+    def _fresh(self, folder: Path, stage: Stage) -> tuple[Path, Path]:
+        """A new private `folder` with box/ (holding a copy of the base workspace, if any) and inputs/."""
+        shutil.rmtree(folder, ignore_errors=True)
+        box, inputs = folder / "box", folder / "inputs"
+        box.mkdir(parents=True)
+        inputs.mkdir()
+        if stage.base is not None:
+            shutil.copytree(self.reference(stage.base).workspace, box / WS)
+        return box, inputs
+
+    def kill_stage(self, name: str, kills: int, seed: int) -> list[Outcome]:
+        """`kills` kills of stage `name`: signals in turn (starting at the stage's position in STAGES, so one
+        kill per stage still spreads the three signals), phases and moments drawn from `seed`."""
+        stage = self.stages[name]
+        self.reference(stage.expected or name)
+        rng = random.Random(f"{seed}/{name}")
+        offset = list(self.stages).index(name)
+        outcomes = []
+        for index in range(kills):
+            signum = SIGNALS[(index + offset) % len(SIGNALS)]
+            phase = rng.choices(list(PHASES), weights=list(PHASES.values()))[0]
+            outcomes.append(self.kill_once(stage, signum, phase, rng, self.root / "kills" / f"{name}-{index:03d}"))
+            shutil.rmtree(self.root / "kills" / f"{name}-{index:03d}", ignore_errors=True)
+        return outcomes
+
+    def kill_once(self, stage: Stage, signum: int, phase: str, rng: random.Random, folder: Path) -> Outcome:
+        box, inputs = self._fresh(folder, stage)
+        workspace = box / WS
+        argv = stage.prepare(workspace, inputs)
+        before = snapshot(workspace)
+        stdout, stderr = folder / "stdout.txt", folder / "stderr.txt"
+        with open(stdout, "wb") as out, open(stderr, "wb") as err:
+            process = subprocess.Popen(
+                [sys.executable, "-m", "avatarperfect_cli", *argv], stdout=out, stderr=err,
+                env={**os.environ, SAVE_DELAY_VARIABLE: str(SAVE_DELAY)}, preexec_fn=_default_sigint,
+            )  # fmt: skip
+            moment, lock_seen = self._kill_at_moment(process, workspace, signum, phase, rng, self.reference(stage.expected or stage.name))
+            status = process.wait(timeout=600)
+        outcome = Outcome(stage.name, signal.Signals(signum).name, phase, moment, lock_seen, status, "lost")
+        text = stderr.read_text(errors="replace")
+        outcome.traceback, outcome.stderr_tail = "Traceback" in text, text[-600:]
+        self.check(stage, outcome, workspace, before, folder)
+        return outcome
+
+    def _kill_at_moment(
+        self, process: subprocess.Popen, workspace: Path, signum: int, phase: str, rng: random.Random, reference: Reference
+    ) -> tuple[float | None, bool]:
+        """Wait for the phase's moment, then signal; (seconds after the start or None if the process ended first,
+        whether the lock file had appeared)."""
+        start = time.perf_counter()
+        lock = lock_path(workspace)
+        usual_startup = statistics.median(self.startup_seconds) if self.startup_seconds else 2.0
+        deadline = start + rng.uniform(0.0, usual_startup) if phase == "startup" else None
+        lock_seen = False
+        seen: set[str] = set()
+        while process.poll() is None:
+            now = time.perf_counter()
+            if not lock_seen and lock.exists():
+                lock_seen = True
+                self.startup_seconds.append(now - start)
+                if phase == "run":
+                    deadline = now + rng.uniform(0.0, 1.2 * reference.seconds)
+            if phase == "save" and lock_seen and deadline is None:
+                for entry in hidden_entries(workspace.parent):
+                    if entry not in seen and ".tmp" in entry:
+                        seen.add(entry)
+                        if rng.random() < 0.5:
+                            deadline = now + rng.uniform(0.0, SAVE_DELAY)
+                            break
+            if deadline is not None and now >= deadline:
+                process.send_signal(signum)
+                return now - start, lock_seen
+            time.sleep(POLL_S)
+        return None, lock_seen
+
+    def check(self, stage: Stage, outcome: Outcome, workspace: Path, before: dict[str, str], folder: Path) -> None:
+        """Fill in `outcome.state` and `outcome.problems` (see the module doc)."""
+        problems = outcome.problems
+        signum = signal.Signals[outcome.signal]
+        status = outcome.exit_status
+        if signum != signal.SIGKILL and not _interrupt_status(outcome):
+            problems.append(f"exit status {status} after {outcome.signal}")
+        if outcome.lock_seen and outcome.traceback:
+            problems.append("a traceback on stderr")
+        if workspace.exists() or stage.base is not None:
+            try:
+                open_workspace(workspace)
+            except Exception as error:  # noqa: BLE001 - any failure to read is the finding
+                problems.append(f"right after the kill the manifest does not load: {error}")
+        after_next = invoke("apply-edit", workspace, "--list")
+        if after_next.exit_code != 0 and not (stage.base is None and not workspace.exists()):
+            problems.append(f"the next command failed: {after_next.output.strip()[-300:]}")
+        leftovers = sorted(entry.name for entry in workspace.parent.iterdir() if entry.name != WS) + hidden_entries(workspace)
+        if leftovers:
+            problems.append(f"left after the next command: {leftovers}")
+        now = snapshot(workspace)
+        reference = self.reference(stage.expected or stage.name)
+        if now == before:
+            outcome.state = "old"
+        elif self._is_new_state(stage, now, before, reference, problems):
+            damage = self.check_workspace(workspace, folder)
+            problems.extend(damage)
+            outcome.state = "lost" if damage else "new"
+        else:
+            problems.append(f"neither the old nor the new state: {_difference(now, before, reference.after)}")
+        if status == 0 and outcome.state != "new":
+            problems.append("exit status 0 but the stage's result is missing")
+
+    def _is_new_state(self, stage: Stage, now: dict[str, str], before: dict[str, str], reference: Reference, problems: list[str]) -> bool:
+        if set(now) != set(reference.after):
+            return False
+        if stage.expected is None:
+            untouched = [path for path, digest in reference.before.items() if reference.after.get(path) == digest]
+            changed = [path for path in untouched if now.get(path) != before.get(path)]
+            if changed:
+                problems.append(f"files the stage leaves alone changed: {changed}")
+                return False
+        return True
+
+    def check_workspace(self, workspace: Path, scratch: Path) -> list[str]:
+        """Problems of a workspace in its new state: manifest, committed avatars, a render of the current one, edits."""
+        try:
+            ws = open_workspace(workspace)
+            for iteration in sorted(ws.committed_avatars()):
+                Avatar.load(ws.avatar_path(iteration))
+        except Exception as error:  # noqa: BLE001
+            return [f"does not load: {error}"]
+        problems = []
+        current = hashlib.sha256(ws.avatar_path().read_bytes()).hexdigest()
+        if current not in self.rendered:
+            pose = scratch / "check-pose.json"
+            write_pose(pose, reference_pose(ws))
+            result = invoke("render", workspace, "--pose", pose, "-o", scratch / "check.png")
+            if result.exit_code != 0 or not (scratch / "check.png").is_file():
+                problems.append(f"render --pose failed: {result.output.strip()[-300:]}")
+            else:
+                self.rendered.add(current)
+        for folder in ws.numbered_folders(EDITS):
+            names = {p.name for p in folder.iterdir()}
+            if not EDIT_FILES <= names or not any(name.startswith("edited.") for name in names):
+                problems.append(f"edit {folder.name} is incomplete: {sorted(names)}")
+        for path in (workspace / "avatar").glob("*.ply"):
+            if not path.stem.isdigit() or int(path.stem) not in ws.committed_avatars():
+                problems.append(f"{path.name} is not committed")
+        return problems
+
+
+def _difference(now: dict[str, str], before: dict[str, str], expected: dict[str, str]) -> str:
+    return (
+        f"missing vs before {sorted(set(before) - set(now))}, extra vs before {sorted(set(now) - set(before))}, "
+        f"missing vs new {sorted(set(expected) - set(now))}, extra vs new {sorted(set(now) - set(expected))}"
+    )
+
+
+def _interrupt_status(outcome: Outcome) -> bool:
+    """Whether a SIGINT or SIGTERM ended the process as promised: 130 (0 if the stage finished first). Two more
+    are accepted: death by the signal itself before the lock was taken (the interpreter was starting, before the
+    CLI's handlers), and death by SIGINT after "interrupted" was printed: under `python -m`, CPython ends itself
+    by SIGINT when a KeyboardInterrupt once passed through exec() of a string, even if it was handled (the
+    `avatarperfect` script exits 130 there; a shell shows 130 for both)."""
+    status, signum = outcome.exit_status, signal.Signals[outcome.signal]
+    if status in (0, 130):
+        return True
+    if status == -signum and not outcome.lock_seen:
+        return True
+    return status == -signal.SIGINT and outcome.stderr_tail.rstrip().endswith("interrupted: nothing was changed")
+
+
+def _default_sigint() -> None:
+    """In the child: Ctrl-C's default, even when the harness was started with SIGINT ignored (a background job)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def write_results(path: Path, stage: str, summary: dict) -> None:
+    """Merge one stage's summary into the JSON results file at `path`."""
+    results = json.loads(path.read_text()) if path.is_file() else {}
+    results[stage] = summary
+    path.write_text(json.dumps(results, indent=2) + "\n")
+
+
+if __name__ == "__main__":  # python -m tests.reliability.kill_harness RESULTS.json: the counts as a markdown table
+    print(markdown_table(json.loads(Path(sys.argv[1]).read_text())))
