@@ -6,7 +6,7 @@ DEMO ?= demo
 # The CPU wheel of torch; any other spec would pull several GB of CUDA packages.
 TORCH_SPEC ?= torch==2.13.0
 
-.PHONY: install test demo bench clean
+.PHONY: install test demo bench reliability clean
 
 install: $(VENV)/.installed
 
@@ -39,6 +39,14 @@ demo: install
 
 bench: install
 	$(BIN)/python benchmarks/rasterizer.py
+
+# The full reliability run: the damaged-input corpus, and KILLS random kills (SIGINT, SIGTERM, SIGKILL) of every
+# workspace-writing stage (tests/reliability); the counts go to out/reliability-kills.json and docs/reliability.md.
+KILLS ?= 50
+reliability: install
+	mkdir -p out && rm -f out/reliability-kills.json
+	KILLS=$(KILLS) KILL_REPORT=out/reliability-kills.json $(BIN)/python -m pytest tests/reliability
+	$(BIN)/python -m tests.reliability.kill_harness out/reliability-kills.json
 
 clean:
 	rm -rf $(VENV) $(DEMO)

@@ -107,6 +107,25 @@ def make_sample(
     make(out_dir, preset, resolution, seed, train_frames, test_frames)
 
 
+@app.command("prepare")
+@_one_line_errors
+def prepare(
+    video: Path = typer.Argument(..., help="A video of one person (any format OpenCV reads, e.g. .mp4)."),
+    out_dir: Path = typer.Argument(..., help="Folder to write in the People-Snapshot layout (new, empty, or a previous one)."),
+    every: int = typer.Option(1, help="Keep every N-th frame."),
+    fov: float = typer.Option(60.0, help="The camera's field of view across the longer image side, degrees (assumed)."),
+) -> None:
+    """Make a People-Snapshot folder from your own video: frames, person masks, fitted SMPL poses, a camera
+    (needs MediaPipe's pose models: the package's optional extra 'prepare'; see docs/real-data.md)."""
+    from avatarperfect_cli.io.outputs import check_writable_folder
+    from avatarperfect_cli.stages.prepare import PrepareSettings
+    from avatarperfect_cli.stages.prepare import prepare as run
+
+    _require_in_range("--every", every, 1)
+    check_writable_folder(out_dir)
+    run(video, out_dir, PrepareSettings(every=every, fov_degrees=fov))
+
+
 @app.command("train-initial")
 @_one_line_errors
 def train_initial(
@@ -114,9 +133,19 @@ def train_initial(
     workspace: Path = typer.Argument(..., help="Workspace folder to create."),
     iterations: int = typer.Option(2000, help="Training steps (at least 1)."),
     resolution: Optional[int] = typer.Option(None, help="Longest image side to train at (>= 16; integer downscale)."),
-    frames: Optional[str] = typer.Option(None, help="Frame range START:END[:STEP], END inclusive."),
+    frames: Optional[str] = typer.Option(
+        None, help="Frame range START:END[:STEP], END inclusive [default: every frame, or the split file's frames]."
+    ),
+    poses: str = typer.Option(
+        "auto", help="Pose file, relative to DATASET or absolute [default: poses/anim_nerf_train.npz, else "
+        "poses_optimized.npz, else poses.npz].", show_default=False,
+    ),  # fmt: skip
     body_model: str = typer.Option("anny", help="anny (built in) or smpl (needs --smpl-model-dir)."),
     smpl_model_dir: Optional[Path] = typer.Option(None, help="Folder with your licensed SMPL model files."),
+    transl_offset: str = typer.Option(
+        "auto", help="Added to the dataset's translations so the template lands on the subject: auto (fitted to the "
+        "masks when the poses were fitted for another body, e.g. SMPL poses with anny), fit, off, or X,Y,Z metres.",
+    ),  # fmt: skip
     sh_degree: int = typer.Option(1, help="Spherical-harmonics degree of the colours (0 to 3)."),
     seed: int = typer.Option(0, help="Random seed."),
     refine_poses: bool = typer.Option(False, "--refine-poses", help="Also refine each frame's SMPL pose (real videos)."),
@@ -125,16 +154,15 @@ def train_initial(
     """Fit the first avatar from a monocular video."""
     from avatarperfect_cli.io.outputs import check_writable_folder
     from avatarperfect_cli.sample.generate import MIN_RESOLUTION
-    from avatarperfect_cli.stages.train_initial import BodySettings, InitialFit, VideoSettings
+    from avatarperfect_cli.stages.train_initial import BodySettings, InitialFit, VideoSettings, parse_transl_offset
     from avatarperfect_cli.stages.train_initial import train_initial as run
 
     _require_in_range("--iterations", iterations, 1)
     _require_in_range("--resolution", resolution, MIN_RESOLUTION)
     _require_in_range("--sh-degree", sh_degree, 0, 3)
     check_writable_folder(workspace)
-    fit = InitialFit(
-        VideoSettings(_frame_range(frames), resolution), BodySettings(body_model, smpl_model_dir), iterations, sh_degree, seed, refine_poses
-    )
+    body = BodySettings(body_model, smpl_model_dir, parse_transl_offset(transl_offset))
+    fit = InitialFit(VideoSettings(_frame_range(frames), resolution, poses), body, iterations, sh_degree, seed, refine_poses)
     run(dataset, workspace, fit, force)
 
 
@@ -146,12 +174,18 @@ def evaluate(
         ..., "--test", help="Held-out video (People-Snapshot layout) at the training video's resolution; another is refused."
     ),
     iteration: Optional[int] = typer.Option(None, help="Avatar iteration [default: latest]."),
-    frames: Optional[str] = typer.Option(None, help="Frame range START:END[:STEP] of the test video."),
+    frames: Optional[str] = typer.Option(
+        None, help="Frame range START:END[:STEP] of the test video [default: every frame, or the split file's frames]."
+    ),
+    poses: str = typer.Option(
+        "auto", help="Pose file, relative to the test video or absolute [default: poses/anim_nerf_test.npz, else "
+        "poses_optimized.npz, else poses.npz].", show_default=False,
+    ),  # fmt: skip
 ) -> None:
-    """IoU, PSNR and SSIM on held-out poses."""
+    """IoU, PSNR and SSIM on held-out poses (moved by the workspace's translation offset, like its training poses)."""
     from avatarperfect_cli.stages.evaluate import evaluate as run
 
-    run(workspace, test, iteration, _frame_range(frames))
+    run(workspace, test, iteration, _frame_range(frames), poses=poses)
 
 
 @app.command("render")
@@ -168,7 +202,15 @@ def render(
         help="Camera JSON: K, world_to_camera, width, height (sides up to 8192 px, or $AVATARPERFECT_MAX_IMAGE_SIDE).",
     ),  # fmt: skip
     pose: Optional[Path] = typer.Option(None, "--pose", help="Pose JSON: body pose, translation and camera."),
-    motion: Optional[Path] = typer.Option(None, "--motion", help="SMPL motion .npz (poses (N,72), trans (N,3))."),
+    motion: Optional[Path] = typer.Option(
+        None, "--motion", help="SMPL motion .npz (poses (N,72), trans (N,3)), rendered upright and facing the camera. Its "
+        "first frame's root is placed where the training video's first frame had it (the origin for an avatar PLY), "
+        "also with --camera; later frames follow the motion's own root path from there, turned the same way.",
+    ),  # fmt: skip
+    up: Optional[str] = typer.Option(
+        None, "--up", help="The motion's up axis: y (SMPL, GART), -y (camera frame, InstantAvatar) or z (AMASS) "
+        "[default: detected from its first frame's root orientation].", show_default=False,
+    ),  # fmt: skip
     turntable: int = typer.Option(0, help="Frames of a camera circling the avatar."),
     iteration: Optional[int] = typer.Option(None, help="Workspace avatar iteration [default: latest]."),
     background: str = typer.Option("white", help="white, black or R,G,B in 0..1."),
@@ -181,10 +223,10 @@ def render(
     """Render static Gaussians, or a skinned avatar in a pose, a motion or a turntable."""
     from avatarperfect_cli.stages import render as stage
 
-    if camera is not None and pose is None and motion is None and turntable == 0:
+    if camera is not None and pose is None and motion is None and turntable == 0 and up is None:
         stage.render_ply(source, camera, output, None, background, device)
     else:
-        stage.render_avatar_views(source, output, pose, motion, turntable, camera, iteration, background, fps, force=force)
+        stage.render_avatar_views(source, output, pose, motion, turntable, camera, iteration, background, fps, force=force, up=up)
 
 
 @app.command("visibility")

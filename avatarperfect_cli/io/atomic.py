@@ -77,6 +77,27 @@ def atomic_folder(target: Path) -> Iterator[Path]:
         shutil.rmtree(staging, ignore_errors=True)
 
 
+@contextmanager
+def updated_folder(folder: Path) -> Iterator[Path]:
+    """Yield a staging copy of `folder` (new or existing) in which to add or replace files; on success it replaces
+    `folder` in one step (see `atomic_folder`), so readers see all the changes or none.
+
+    The copy's files are hard links of the originals where the file system has them (hidden files are left
+    out): write them only through `atomic_path` and the writers built on it, never in place.
+    """
+    with atomic_folder(folder) as staging:
+        if folder.is_dir():
+            shutil.copytree(folder, staging, copy_function=_link_or_copy, ignore=shutil.ignore_patterns(".*"), dirs_exist_ok=True)
+        yield staging
+
+
+def _link_or_copy(source: str, destination: str) -> None:
+    try:
+        os.link(source, destination)
+    except OSError:
+        shutil.copy2(source, destination)
+
+
 def replace_folder(staging: Path, target: Path) -> None:
     """Move the complete folder `staging` onto `target` (which may exist), as one step where possible.
 
@@ -110,10 +131,18 @@ def recover_folder(target: Path) -> None:
 
 
 def remove_temporaries(folder: Path) -> None:
-    """Delete the temporary files `atomic_path` left in `folder` and its subfolders (after a kill)."""
-    for leftover in folder.rglob(".*.tmp-*"):
-        if leftover.is_file():
+    """Delete what killed writers left in `folder` and its subfolders: `atomic_path`'s temporary files and the
+    hidden staging folders of `staging_dir` and `replace_folder` (a retired folder whose target is missing is
+    put back instead, as `recover_folder` does)."""
+    leftovers = list(folder.rglob(".*.tmp*"))
+    for leftover in leftovers:
+        if leftover.is_dir() and leftover.name.endswith(RETIRED_SUFFIX):
+            recover_folder(leftover.with_name(leftover.name[1 : -len(RETIRED_SUFFIX)]))
+    for leftover in leftovers:
+        if leftover.is_file() and ".tmp-" in leftover.name:
             leftover.unlink(missing_ok=True)
+        elif leftover.is_dir() and leftover.name.endswith(".tmp"):
+            shutil.rmtree(leftover, ignore_errors=True)
 
 
 def _test_save_delay() -> None:
@@ -123,8 +152,11 @@ def _test_save_delay() -> None:
         time.sleep(float(delay))
 
 
+RETIRED_SUFFIX = ".retired.tmp"
+
+
 def _retired_name(target: Path) -> Path:
-    return target.with_name(f".{target.name}.retired.tmp")
+    return target.with_name(f".{target.name}{RETIRED_SUFFIX}")
 
 
 _AT_FDCWD = -100

@@ -74,6 +74,13 @@ def visibility_picture(avatar: Avatar, visibility: torch.Tensor, title: str) -> 
         axis.axis("off")
     bar = figure.colorbar(matplotlib.cm.ScalarMappable(norm=norm, cmap=colour_map), cax=axes[-1])
     bar.set_label("mean visibility per frame (pixels)")
+    return figure_png(figure, title)
+
+
+def figure_png(figure, title: str) -> bytes:
+    """PNG bytes of a matplotlib figure with `title`, laid out tightly; the figure is closed."""
+    from matplotlib import pyplot as plt
+
     figure.suptitle(title)
     figure.tight_layout()
     buffer = io.BytesIO()

@@ -115,7 +115,7 @@ class OrbitView:
         world[:3, 3] = center - orbit.T @ center
         means, quats = self.avatar.pose(body_pose, transl, world)
         distance = framing_distance(means - center, self.base_rotation, camera.K, camera.width, camera.height, self.fill)
-        base = self._camera(center, float(distance), camera)
+        base = self._camera(center, float(distance.detach()), camera)
         # the camera sits at the detached distance; moving the body by the difference (zero in value) lets
         # the gradient see that a pose which widens the body pushes the camera back
         means = means + (distance - distance.detach()) * self.forward

@@ -195,7 +195,7 @@ def fill_region(
             filled = fill_opencv(source.image, region, fill)
         else:
             filled = fill_flat(source.image, region, parse_colour(fill))
-        filled_path = workspace.root / EDITS / f".fill-{fill.strip('#')}.png"
+        filled_path = workspace.root / EDITS / f".fill-{fill.strip('#')}.tmp-edit.png"  # a kill leaves a temporary
         write_image(filled_path, filled)
         try:
             painted = read_painted_image(filled_path)

@@ -31,7 +31,7 @@ from avatarperfect_cli.body import axis_angle_to_matrix
 from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
 from avatarperfect_cli.gaussians import Gaussians
 from avatarperfect_cli.io import atomic_path, read_camera, read_gaussians, read_pose, write_image
-from avatarperfect_cli.io.atomic import staging_dir
+from avatarperfect_cli.io.atomic import recover_folder, staging_dir
 from avatarperfect_cli.io.motion import UP_AXES, detect_up_axis, place_motion, read_motion
 from avatarperfect_cli.io.outputs import check_writable_folder, check_writable_output, write_image_pair
 from avatarperfect_cli.io.pose_json import NUM_JOINTS
@@ -227,6 +227,8 @@ def _png_frames_writer(output: Path) -> Iterator[Callable[[torch.Tensor], None]]
     if existing:
         for leftover in output.glob(f".{FRAMES_STAGING}.*.tmp"):  # from a killed render
             shutil.rmtree(leftover, ignore_errors=True)
+    else:
+        recover_folder(output)  # the staging folder beside it that a killed render left
     staging = staging_dir(output / FRAMES_STAGING if existing else output)
     count = 0
 

@@ -21,6 +21,7 @@ from avatarperfect_cli.datasets import load_people_snapshot
 from avatarperfect_cli.errors import AvatarPerfectError
 from avatarperfect_cli.io import atomic_write_bytes, read_image, write_image
 from avatarperfect_cli.io.workspace import Workspace, open_workspace
+from avatarperfect_cli.refinement.pictures import figure_png
 from avatarperfect_cli.stages.evaluate import evaluate
 from avatarperfect_cli.stages.render import frame_writer
 from avatarperfect_cli.stages.workspace_data import SUGGESTIONS, registered_edits
@@ -44,8 +45,6 @@ def iteration_metrics(workspace_root: Path, test_dataset: Path, progress: bool =
 
 def metrics_plot(results: list[dict], title: str) -> bytes:
     """PNG bytes: held-out PSNR and IoU against the avatar iteration."""
-    import io
-
     import matplotlib
 
     matplotlib.use("Agg")
@@ -60,12 +59,7 @@ def metrics_plot(results: list[dict], title: str) -> bytes:
     for axis in (psnr_axis, iou_axis):
         axis.set_xticks(iterations)
         axis.grid(alpha=0.3)
-    figure.suptitle(title)
-    figure.tight_layout()
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=100)
-    plt.close(figure)
-    return buffer.getvalue()
+    return figure_png(figure, title)
 
 
 def edits_sheet(workspace: Workspace) -> torch.Tensor | None:

@@ -15,6 +15,7 @@ from pathlib import Path
 from rich.console import Console
 
 from avatarperfect_cli.io import atomic_write_text, read_image, read_pose, write_image
+from avatarperfect_cli.io.atomic import updated_folder
 from avatarperfect_cli.io.workspace import locked_workspace
 from avatarperfect_cli.sample.simulated_user import PaintResult, UserConfig, paint
 from avatarperfect_cli.sample.subject import SyntheticSubject
@@ -45,11 +46,20 @@ def simulate_user(
         suggested = read_image(folder / "suggested.png", "RGB")
         alpha = read_image(folder / "suggested_alpha.png", "L")[..., 0]
         result = paint(suggested, alpha, truth_model.render(pose.body_pose, pose.transl, pose.camera), config)
-        path = output or folder / SIMULATED_EDIT
-        write_image(path, result.image)
-        atomic_write_text(Path(path).with_suffix(".json"), json.dumps(asdict(result.stats), indent=2) + "\n")
+        path = Path(output) if output is not None else folder / SIMULATED_EDIT
+        if output is None:  # inside the workspace: the image and its stats appear together
+            with updated_folder(folder) as staging:
+                _write_painting(staging / SIMULATED_EDIT, result)
+        else:
+            _write_painting(path, result)
     stats = result.stats
     Console(stderr=True, quiet=not progress).print(
         f"painted {stats.painted_pixels:,} pixels ({100 * stats.budget_used:.0f}% of the budget) into {path}"
     )
     return result
+
+
+def _write_painting(path: Path, result: PaintResult) -> None:
+    """The painted image at `path` and its statistics beside it (.json)."""
+    write_image(path, result.image)
+    atomic_write_text(path.with_suffix(".json"), json.dumps(asdict(result.stats), indent=2) + "\n")

@@ -18,7 +18,7 @@ from avatarperfect_cli.io.atomic import atomic_path
 from avatarperfect_cli.io.camera_json import camera_to_json
 from avatarperfect_cli.io.workspace import check_new_workspace, new_workspace, workspace_lock
 from avatarperfect_cli.training.pose_refinement import PoseRefiner
-from avatarperfect_cli.training.template_offset import fit_transl_offset
+from avatarperfect_cli.training.template_offset import OffsetSearch, fit_transl_offset
 from avatarperfect_cli.training.trainer import TrainConfig, train, video_views
 
 # With --refine-poses: the video's refined poses (frame_ids (T,), body_pose (T, 24, 3), transl (T, 3)).
@@ -58,14 +58,17 @@ class VideoSettings:
     resolution: int | None = None
     poses: str = "auto"
 
-    def downscale(self, root: Path) -> int:
-        if self.resolution is None:
+    def downscale(self, root: Path, resolution: int | None = None) -> int:
+        """The integer factor for `resolution` (default: this one's); 1 keeps the native size."""
+        resolution = resolution or self.resolution
+        if resolution is None:
             return 1
         camera = read_dataset_camera(root)
-        return max(1, round(max(camera.width, camera.height) / self.resolution))
+        return max(1, round(max(camera.width, camera.height) / resolution))
 
-    def load(self, root: Path) -> VideoDataset:
-        return load_people_snapshot(root, self.frames, "train", self.downscale(root), pose_source=self.poses)
+    def load(self, root: Path, resolution: int | None = None) -> VideoDataset:
+        """The training split at this resolution, or at `resolution` pixels when given."""
+        return load_people_snapshot(root, self.frames, "train", self.downscale(root, resolution), pose_source=self.poses)
 
 
 @dataclass
@@ -94,21 +97,13 @@ class BodySettings:
             return template, {"name": "smpl", "betas": betas}
         return load_body_template(self.name), {"name": self.name}
 
-    def offset(self, template: BodyTemplate, body_model: dict, video: VideoDataset, console: Console) -> torch.Tensor:
-        """(3,) metres: the translation offset for `template` under the video's poses (see transl_offset)."""
+    def needs_offset(self, body_model: dict, video: VideoDataset) -> bool:
+        """Whether to fit the translation offset: always (FIT_OFFSET), or (AUTO_OFFSET) when the template is
+        not SMPL and the dataset's subject.json does not name its body model as the one its poses are for."""
         if isinstance(self.transl_offset, tuple):
-            return torch.tensor(self.transl_offset, dtype=torch.float32)
+            return False
         poses_for_template = body_model["name"] == "smpl" or (video.subject or {}).get("body_model") == body_model["name"]
-        if self.transl_offset == AUTO_OFFSET and poses_for_template:
-            return torch.zeros(3)
-        fit = fit_transl_offset(template, video)
-        x, y, z = fit.offset.tolist()
-        console.print(
-            f"template offset ({x:+.3f}, {y:+.3f}, {z:+.3f}) m: the {body_model['name']} template on the masks "
-            f"(mean IoU {fit.iou:.2f}); --transl-offset sets it",
-            soft_wrap=True,
-        )
-        return fit.offset
+        return self.transl_offset == FIT_OFFSET or not poses_for_template
 
 
 @dataclass
@@ -135,6 +130,27 @@ def train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool =
         return _train_initial(dataset, workspace, fit, force, progress)
 
 
+def _transl_offset(
+    dataset: Path, fit: InitialFit, video: VideoDataset, template: BodyTemplate, body_model: dict, console: Console
+) -> torch.Tensor:
+    """(3,) metres added to the video's translations (BodySettings.transl_offset); a fitted one is measured
+    on masks of at least the search's resolution (the training video's, or a finer load of the same frames)."""
+    if isinstance(fit.body.transl_offset, tuple):
+        return torch.tensor(fit.body.transl_offset, dtype=torch.float32)
+    if not fit.body.needs_offset(body_model, video):
+        return torch.zeros(3)
+    search = OffsetSearch()
+    masks = video if max(video.camera.width, video.camera.height) >= search.resolution else fit.video.load(dataset, search.resolution)
+    result = fit_transl_offset(template, masks, search)
+    x, y, z = result.offset.tolist()
+    console.print(
+        f"template offset ({x:+.3f}, {y:+.3f}, {z:+.3f}) m puts the {body_model['name']} template on the masks "
+        f"(mean IoU {result.iou:.2f}); --transl-offset sets it",
+        soft_wrap=True,
+    )
+    return result.offset
+
+
 def _train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool, progress: bool) -> Path:
     check_new_workspace(workspace, force)
     console = Console(stderr=True, quiet=not progress)
@@ -142,7 +158,7 @@ def _train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool,
     for note in video.notes:
         console.print(note, soft_wrap=True, markup=False, highlight=False)
     template, body_model = fit.body.template(video)
-    offset = fit.body.offset(template, body_model, video, console)
+    offset = _transl_offset(dataset, fit, video, template, body_model, console)
     video.transl = video.transl + offset
     avatar = Avatar.from_template(template, sh_degree=fit.sh_degree, body_model=body_model)
     console.print(f"fitting {len(avatar):,} Gaussians to {len(video)} frames of {video.camera.width}x{video.camera.height}")

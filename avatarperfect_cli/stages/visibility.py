@@ -23,6 +23,7 @@ from rich.progress import track
 from avatarperfect_cli.avatar.model import Avatar
 from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
 from avatarperfect_cli.io import atomic_write_bytes
+from avatarperfect_cli.io.atomic import updated_folder
 from avatarperfect_cli.io.workspace import Workspace, locked_workspace
 from avatarperfect_cli.refinement.pictures import visibility_picture
 from avatarperfect_cli.refinement.visibility import DEFAULT_EDIT_WEIGHT, combine_visibility, gaussian_visibility
@@ -90,8 +91,9 @@ def compute_visibility(workspace: Workspace, avatar: Avatar, edit_weight: float,
     )  # fmt: skip
     title = f"avatar {workspace.iteration:03d}: visibility over {len(views)} frames and {len(edits)} edits"
     picture = visibility_picture(avatar, visibility, title)
-    atomic_write_bytes(path, buffer.getvalue())
-    atomic_write_bytes(path.with_suffix(".png"), picture)
+    with updated_folder(path.parent) as staging:  # the record and its picture appear together
+        atomic_write_bytes(staging / path.name, buffer.getvalue())
+        atomic_write_bytes(staging / path.with_suffix(".png").name, picture)
     console.print(f"wrote {path} and {path.with_suffix('.png').name} ({time.perf_counter() - start:.1f} s)")
     return record
 

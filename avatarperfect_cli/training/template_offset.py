@@ -16,6 +16,7 @@ silhouette only tells the body's size, and the template's size differs from the 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -31,13 +32,18 @@ from avatarperfect_cli.datasets.people_snapshot import downscaled_camera
 from avatarperfect_cli.render import Camera
 
 
+# The template's initial Gaussians are discs as wide as their vertex's share of the surface; their alpha
+# spreads past the mesh's outline. Shrunk by this factor, the silhouette hugs the outline (without holes).
+SILHOUETTE_SHRINK = 0.5
+
+
 @dataclass
 class OffsetSearch:
     """frames: video frames compared (evenly spaced); resolution: longest image side of the comparison in
     pixels (at most the video's); rounds: render-and-align repetitions."""
 
     frames: int = 8
-    resolution: int = 96
+    resolution: int = 128
     rounds: int = 3
 
 
@@ -58,6 +64,7 @@ def fit_transl_offset(template: BodyTemplate, video: VideoDataset, search: Offse
     masks = masks[chosen].numpy()
     body_pose, transl = video.body_pose[chosen].float(), video.transl[chosen].float()
     silhouette = Avatar.from_template(template, sh_degree=0)
+    silhouette.params["log_scales"] = silhouette.params["log_scales"] + math.log(SILHOUETTE_SHRINK)
     canvas = _canvas(camera)
     rotation = camera.world_to_camera[:3, :3]
     offset = torch.zeros(3)

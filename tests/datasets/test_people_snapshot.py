@@ -516,3 +516,102 @@ def test_invalid_arguments_are_programming_errors(source: Source) -> None:
         load_people_snapshot(source.root, split="training")
     with pytest.raises(ValueError):
         load_people_snapshot(source.root, downscale=0)
+
+
+# ------------------------------------------------------------------ split files whose frames are not stored
+
+
+def write_split(root: Path, split: str, thetas: np.ndarray, transl: np.ndarray, betas: np.ndarray) -> Path:
+    """An InstantAvatar split file: betas (1, 10), global_orient (N, 3), body_pose (N, 69), transl (N, 3)."""
+    path = root / "poses" / f"anim_nerf_{split}.npz"
+    path.parent.mkdir(exist_ok=True)
+    np.savez(path, betas=betas[None], global_orient=thetas[:, :3], body_pose=thetas[:, 3:], transl=transl)
+    return path
+
+
+@pytest.fixture
+def twelve_frames(tmp_path: Path) -> Source:
+    """12 frames and no poses.npz: an InstantAvatar folder keeps its poses in split files only."""
+    return write_by_hand(random_source(tmp_path / "subject", frames=12), poses=False)
+
+
+def test_a_split_with_a_row_per_image_covers_every_image(twelve_frames: Source) -> None:
+    source = twelve_frames
+    write_split(source.root, "train", source.thetas, source.transl, source.betas)
+    data = load_people_snapshot(source.root, split="train")
+    assert_matches(data, source, np.arange(12), np.arange(12))
+    assert data.pose_file == "poses/anim_nerf_train.npz" and data.notes == ()
+
+
+def test_train_and_test_splits_tile_the_video_with_one_step(twelve_frames: Source) -> None:
+    """4 train rows + 2 test rows for 12 images: step 2, train 0..6, test 8..10; said in one note each."""
+    source = twelve_frames
+    train_frames, test_frames = np.arange(0, 8, 2), np.array([8, 10])
+    write_split(source.root, "train", source.thetas[train_frames], source.transl[train_frames], source.betas)
+    write_split(source.root, "test", source.thetas[test_frames], source.transl[test_frames], source.betas)
+    for split, frames in (("train", train_frames), ("test", test_frames)):
+        data = load_people_snapshot(source.root, split=split)
+        assert_matches(data, source, frames, frames)
+        (note,) = data.notes
+        assert f"anim_nerf_{split}.npz" in note and f"frames {frames[0]}..{frames[-1]} step 2" in note
+        assert "does not store which frames" in note and "--frames" in note and "\n" not in note
+    val = write_split(source.root, "val", source.thetas[[8]], source.transl[[8]], source.betas)
+    assert load_people_snapshot(source.root, split="val").frame_ids.tolist() == [8]  # InstantAvatar: the first test frame
+    val.unlink()
+    # An explicit range wins over the convention (its row count must match).
+    data = load_people_snapshot(source.root, frames=FrameRange(1, 7, 2), split="train")
+    assert data.frame_ids.tolist() == [1, 3, 5, 7] and data.notes == ()
+
+
+def test_a_public_instantavatar_subject_uses_its_config(tmp_path: Path) -> None:
+    """female-4-casual tests on 335..523 step 4, one frame before the tiling convention's 336: the folder's
+    name and the split's row count select the config. Only the image names matter without images."""
+    root = tmp_path / "female-4-casual"
+    (root / "images").mkdir(parents=True)
+    for frame in range(524):
+        (root / "images" / f"image_{frame:04d}.png").touch()
+    np.savez(root / "cameras.npz", intrinsic=np.diag([500.0, 500.0, 1.0]), extrinsic=np.eye(4), height=540, width=540)
+    rng = np.random.default_rng(3)
+    for split, rows in (("train", 84), ("test", 48)):
+        write_split(root, split, rng.normal(size=(rows, 72)), rng.normal(size=(rows, 3)), np.zeros(10))
+    test = load_people_snapshot(root, split="test", with_images=False)
+    assert test.frame_ids.tolist() == list(range(335, 524, 4))
+    assert "InstantAvatar's female-4-casual config" in test.notes[0]
+    assert load_people_snapshot(root, split="train", with_images=False).frame_ids.tolist() == list(range(0, 336, 4))
+    renamed = root.rename(tmp_path / "my-subject")  # the tiling convention would run past the last image
+    with pytest.raises(InputFileError, match="anim_nerf_test.npz: holds 48 pose rows for 524 images.*--frames"):
+        load_people_snapshot(renamed, split="test", with_images=False)
+
+
+def test_a_split_that_fits_no_frames_is_one_line_naming_it(twelve_frames: Source) -> None:
+    source = twelve_frames
+    too_many = write_split(source.root, "train", np.zeros((13, 72)), np.zeros((13, 3)), source.betas)
+    assert "13 pose rows, more than the 12 images" in expect_error(too_many, split="train").problem
+    write_split(source.root, "train", np.zeros((5, 72)), np.zeros((5, 3)), source.betas)
+    test = write_split(source.root, "test", np.zeros((3, 72)), np.zeros((3, 3)), source.betas)  # step 2: test 10..14
+    assert "give them with --frames" in expect_error(test, split="test").problem
+
+
+def test_wrong_betas_in_a_split_file_are_one_line_naming_it(twelve_frames: Source) -> None:
+    source = twelve_frames
+    path = write_split(source.root, "train", source.thetas, source.transl, source.betas)
+    rewrite_npz(path, betas=np.zeros((1, 16)))
+    assert "'betas' has shape (1, 16)" in expect_error(path, split="train").problem
+
+
+def test_a_folder_with_both_kinds_of_pose_file_says_which_it_read(source: Source) -> None:
+    split_thetas = source.thetas - 0.1
+    write_split(source.root, "train", split_thetas, source.transl, source.betas)
+    data = load_people_snapshot(source.root, split="train")
+    np.testing.assert_allclose(data.body_pose.numpy(), split_thetas.reshape(-1, 24, 3), atol=1e-6)
+    (note,) = data.notes
+    assert "poses from poses/anim_nerf_train.npz" in note and "also there: poses.npz" in note and "--poses" in note
+    explicit = load_people_snapshot(source.root, split="train", pose_source="poses.npz")
+    assert explicit.pose_file == "poses.npz" and explicit.notes == ()
+    np.testing.assert_allclose(explicit.body_pose.numpy(), source.thetas.reshape(-1, 24, 3), atol=1e-6)
+
+
+def test_only_split_files_and_no_split_asks_for_one(twelve_frames: Source) -> None:
+    write_split(twelve_frames.root, "train", twelve_frames.thetas, twelve_frames.transl, twelve_frames.betas)
+    error = expect_error(twelve_frames.root / "poses.npz")
+    assert "anim_nerf_train.npz" in error.problem and "--poses" in error.problem

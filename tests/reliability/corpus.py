@@ -25,7 +25,7 @@ from PIL import Image
 from avatarperfect_cli.avatar.model import Avatar
 from avatarperfect_cli.datasets import write_people_snapshot
 from avatarperfect_cli.gaussians import Gaussians, rgb_to_sh
-from avatarperfect_cli.io import write_camera, write_gaussians, write_pose
+from avatarperfect_cli.io import write_camera, write_gaussians, write_image, write_pose
 from avatarperfect_cli.io.camera_json import camera_to_json
 from avatarperfect_cli.io.motion import write_motion
 from avatarperfect_cli.io.pose_json import PoseFile
@@ -420,6 +420,8 @@ def _motion_damages() -> dict[str, tuple[str, Damage]]:
         "poses missing": rewrite_npz(poses=DELETE),
         "trans missing": rewrite_npz(trans=DELETE),
         "poses 60 wide": rewrite_npz(poses=np.zeros((3, 60), np.float32)),
+        "poses 69 wide (no global orientation)": rewrite_npz(poses=np.zeros((3, 69), np.float32)),
+        "poses 156 wide (SMPL-H, AMASS)": rewrite_npz(poses=np.zeros((3, 156), np.float32)),
         "poses 1-D": rewrite_npz(poses=np.zeros(72, np.float32)),
         "zero frames": rewrite_npz(poses=np.zeros((0, 72), np.float32), trans=np.zeros((0, 3), np.float32)),
         "trans rows": rewrite_npz(trans=np.zeros((2, 3), np.float32)),
@@ -431,7 +433,7 @@ def _motion_damages() -> dict[str, tuple[str, Damage]]:
 
 
 def _dataset_damages() -> dict[str, tuple[str, Damage]]:
-    cameras, poses = "data/cameras.npz", "data/poses.npz"
+    cameras, poses, split = "data/cameras.npz", "data/poses.npz", "data/poses/anim_nerf_train.npz"
     image, mask = "data/images/image_0001.png", "data/masks/mask_0000.npy"
     damages = {f"cameras.npz {label}": (cameras, damage) for label, damage in COMMON_FILE_DAMAGES.items()}
     damages.update(
@@ -473,9 +475,29 @@ def _dataset_damages() -> dict[str, tuple[str, Damage]]:
             "poses.npz transl rows": (poses, rewrite_npz(transl=np.zeros((1, 3)))),
             "poses.npz betas shape": (poses, rewrite_npz(betas=np.zeros(7))),
             "poses.npz single .npy": (poses, save_npy(np.zeros((2, 72)))),
+            "split file more rows than images": (split, write_split_file(3)),
+            "split file betas 16": (split, write_split_file(2, betas=np.zeros((1, 16)))),
+            "split file body_pose 72 wide": (split, write_split_file(2, body_pose_width=72)),
         }
     )
     return damages
+
+
+def write_split_file(rows: int, betas: np.ndarray | None = None, body_pose_width: int = 69) -> Damage:
+    """Write an InstantAvatar split file (global_orient, body_pose, transl, betas (1, 10)) at the path."""
+
+    def damage(path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "wb") as handle:
+            np.savez(
+                handle,
+                betas=np.zeros((1, 10)) if betas is None else betas,
+                global_orient=np.zeros((rows, 3)),
+                body_pose=np.zeros((rows, body_pose_width)),
+                transl=np.zeros((rows, 3)),
+            )
+
+    return damage
 
 
 def _write_png(pixels: np.ndarray) -> Damage:
@@ -516,6 +538,7 @@ def _evaluate_damages() -> dict[str, tuple[str, Damage]]:
     return {
         "test cameras.npz fx zero": ("test/cameras.npz", edit_npz_array("intrinsic", set_array_entry((0, 0), 0.0))),
         "test poses.npz missing": ("test/poses.npz", remove),
+        "test split file more rows than images": ("test/poses/anim_nerf_test.npz", write_split_file(4)),
         "test resolution differs": ("test", _resized_dataset(2)),
     }
 
@@ -545,6 +568,37 @@ def _render_static(root: Path) -> list[str]:
 
 def _workspace_only(root: Path) -> None:
     write_workspace(root / "ws")
+
+
+def _unpainted(root: Path) -> torch.Tensor:
+    """The workspace's avatar in pose.json as apply-edit renders it to compare with a painted image (8-bit, on white)."""
+    from avatarperfect_cli.avatar.rendering import render_avatar
+
+    pose = PoseFile(torch.zeros(24, 3), torch.zeros(3), camera())
+    with torch.no_grad():
+        image = render_avatar(Avatar.load(root / "ws" / "avatar" / "000.ply"), pose.body_pose, pose.transl, pose.camera, torch.ones(3))
+    return image.image.clamp(0, 1)
+
+
+def _edit_inputs(root: Path) -> None:
+    """A workspace, a pose JSON and edited.png: the avatar rendered in that pose with a 4x4 blue square painted on."""
+    write_workspace(root / "ws")
+    write_pose(root / "pose.json", PoseFile(torch.zeros(24, 3), torch.zeros(3), camera()))
+    painted = _unpainted(root)
+    painted[2:6, 2:6] = torch.tensor([0.0, 0.0, 1.0])
+    write_image(root / "edited.png", painted)
+
+
+def _edit_damages() -> dict[str, tuple[str, Damage]]:
+    damages: dict[str, Damage] = {
+        **COMMON_FILE_DAMAGES,
+        "text": write_bytes(b"not a PNG\n"),
+        "truncated": truncate(0.5),
+        "header only": truncate(0.1),
+        "wrong size": _write_png(np.zeros((HEIGHT + 1, WIDTH, 3), np.uint8)),
+        "blank (nothing painted)": lambda path: write_image(path, _unpainted(path.parent)),
+    }
+    return {label: ("edited.png", damage) for label, damage in damages.items()}
 
 
 INPUT_CLASSES: list[InputClass] = [
@@ -592,6 +646,12 @@ INPUT_CLASSES: list[InputClass] = [
         _workspace_and_test,
         lambda root: ["evaluate", str(root / "ws"), "--test", str(root / "test")],
         _evaluate_damages(),
+    ),
+    InputClass(
+        "edit-png",
+        _edit_inputs,
+        lambda root: ["apply-edit", str(root / "ws"), str(root / "edited.png"), "--pose", str(root / "pose.json")],
+        _edit_damages(),
     ),
 ]
 

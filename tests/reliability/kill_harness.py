@@ -53,7 +53,7 @@ from avatarperfect_cli.io.workspace import lock_path, open_workspace
 from avatarperfect_cli.stages.workspace_data import EDITS, SUGGESTIONS, latest_suggestion, reference_pose
 
 SAMPLE = Path(__file__).resolve().parents[2] / "examples" / "sample"
-TRAIN_ARGS = ["--iterations", "30", "--resolution", "64", "--frames", "0:59:6"]
+TRAIN_ARGS = ["--iterations", "10", "--resolution", "64", "--frames", "0:59:12"]
 FAST_SUGGEST = ["--starts", "1", "--steps", "3", "--resolution", "32"]
 SAVE_DELAY = 0.25  # seconds the test hook sleeps before each final rename
 SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGKILL)
@@ -127,9 +127,9 @@ STAGES: list[Stage] = [
     Stage("apply-edit --fill", lambda ws, inputs: ["apply-edit", str(ws), "--region", str(_region(ws, inputs)), "--fill", "white"], base="suggest"),
     Stage("apply-edit --erase", lambda ws, inputs: ["apply-edit", str(ws), "--region", str(_region(ws, inputs)), "--erase", "center"], base="suggest"),
     Stage("apply-edit --remove", lambda ws, inputs: ["apply-edit", str(ws), "--remove", "1"], base="apply-edit"),
-    Stage("refine", lambda ws, inputs: ["refine", str(ws), "--iterations", "10"], base="apply-edit"),
+    Stage("refine", lambda ws, inputs: ["refine", str(ws), "--iterations", "5"], base="apply-edit"),
     Stage("refine --revert-to", lambda ws, inputs: ["refine", str(ws), "--revert-to", "0"], base="refine"),
-    Stage("evaluate", lambda ws, inputs: ["evaluate", str(ws), "--test", str(SAMPLE / "test"), "--frames", "0:19:5"], base="refine"),
+    Stage("evaluate", lambda ws, inputs: ["evaluate", str(ws), "--test", str(SAMPLE / "test"), "--frames", "0:19:10"], base="refine"),
     Stage("train-initial --force", _train("--force"), base="refine", expected="train-initial"),
 ]
 STAGES_BY_NAME = {stage.name: stage for stage in STAGES}
@@ -179,6 +179,8 @@ def markdown_table(results: dict[str, dict]) -> str:
         "|---|---|---:|---:|---:|---:|---|",
     ]
     for stage, summary in results.items():
+        if "by_signal" not in summary:
+            continue
         for name, counts in summary["by_signal"].items():
             states = counts["states"]
             statuses = ", ".join(f"{status}: {count}" for status, count in counts["exit_statuses"].items())
@@ -320,10 +322,7 @@ class Harness:
     def check(self, stage: Stage, outcome: Outcome, workspace: Path, before: dict[str, str], folder: Path) -> None:
         """Fill in `outcome.state` and `outcome.problems` (see the module doc)."""
         problems = outcome.problems
-        signum = signal.Signals[outcome.signal]
         status = outcome.exit_status
-        if signum != signal.SIGKILL and not _interrupt_status(outcome):
-            problems.append(f"exit status {status} after {outcome.signal}")
         if outcome.lock_seen and outcome.traceback:
             problems.append("a traceback on stderr")
         if workspace.exists() or stage.base is not None:
@@ -349,6 +348,10 @@ class Harness:
             problems.append(f"neither the old nor the new state: {_difference(now, before, reference.after)}")
         if status == 0 and outcome.state != "new":
             problems.append("exit status 0 but the stage's result is missing")
+        if status == 0 and outcome.moment is not None and not outcome.lock_seen:
+            problems.append(f"{outcome.signal} before the stage started was ignored: it ran to the end")
+        if outcome.signal != "SIGKILL" and not _interrupt_status(outcome):
+            problems.append(f"exit status {status} after {outcome.signal}")
 
     def _is_new_state(self, stage: Stage, now: dict[str, str], before: dict[str, str], reference: Reference, problems: list[str]) -> bool:
         if set(now) != set(reference.after):
@@ -376,7 +379,7 @@ class Harness:
             write_pose(pose, reference_pose(ws))
             result = invoke("render", workspace, "--pose", pose, "-o", scratch / "check.png")
             if result.exit_code != 0 or not (scratch / "check.png").is_file():
-                problems.append(f"render --pose failed: {result.output.strip()[-300:]}")
+                problems.append(f"render --pose failed: {result.output.strip()[-300:]} {result.exception!r}")
             else:
                 self.rendered.add(current)
         for folder in ws.numbered_folders(EDITS):
@@ -397,15 +400,16 @@ def _difference(now: dict[str, str], before: dict[str, str], expected: dict[str,
 
 
 def _interrupt_status(outcome: Outcome) -> bool:
-    """Whether a SIGINT or SIGTERM ended the process as promised: 130 (0 if the stage finished first). Two more
-    are accepted: death by the signal itself before the lock was taken (the interpreter was starting, before the
-    CLI's handlers), and death by SIGINT after "interrupted" was printed: under `python -m`, CPython ends itself
-    by SIGINT when a KeyboardInterrupt once passed through exec() of a string, even if it was handled (the
-    `avatarperfect` script exits 130 there; a shell shows 130 for both)."""
+    """Whether a SIGINT or SIGTERM ended the process as promised: 130 (0 if the stage finished first). Three more
+    are accepted, all outside the stage: death by the signal itself before the lock was taken (the interpreter
+    was starting, before the CLI's handlers) or with the stage's work complete (the interpreter was exiting and
+    had restored the default handlers), and death by SIGINT after "interrupted" was printed: under `python -m`,
+    CPython ends itself by SIGINT when a KeyboardInterrupt once passed through exec() of a string, even if it was
+    handled (the `avatarperfect` script exits 130 there; a shell shows 130 for both)."""
     status, signum = outcome.exit_status, signal.Signals[outcome.signal]
     if status in (0, 130):
         return True
-    if status == -signum and not outcome.lock_seen:
+    if status == -signum and (not outcome.lock_seen or outcome.state == "new"):
         return True
     return status == -signal.SIGINT and outcome.stderr_tail.rstrip().endswith("interrupted: nothing was changed")
 

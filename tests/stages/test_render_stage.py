@@ -223,3 +223,41 @@ def test_a_camera_that_sees_nothing_gives_one_warning_line(tmp_path: Path, capsy
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("warning: ") and "away.png" in lines[0]
     assert read_image(tmp_path / "away_alpha.png", mode="L").max() == 0  # the warning told the truth
+
+
+# ------------------------------------------------------------------------------------ motions from other tools
+
+
+def test_a_y_down_motion_renders_like_the_y_up_original(tmp_path: Path, avatar_files):
+    """InstantAvatar's demo motion lives in the camera's y-down frame: detected, it renders as the y-up file
+    does; read as y-up (--up y), it renders upside down."""
+    from avatarperfect_cli.body import axis_angle_to_matrix
+    from avatarperfect_cli.io.motion import write_motion
+    from avatarperfect_cli.refinement.pose_prior import matrix_to_axis_angle
+
+    frames = 3
+    body_pose = torch.zeros(frames, 24, 3)
+    body_pose[:, 0] = torch.tensor([[0.1, 0.4, 0.0], [0.2, 0.6, 0.1], [0.0, 0.9, -0.2]])  # turning, tilting
+    transl = torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.05, 0.0], [0.2, -0.05, 0.1]])
+    write_motion(tmp_path / "y_up.npz", body_pose, transl)
+    flip = torch.diag(torch.tensor([1.0, -1.0, -1.0]))  # the avatar's rest pelvis is the origin: roots turn with the world
+    y_down = body_pose.clone()
+    y_down[:, 0] = matrix_to_axis_angle(flip @ axis_angle_to_matrix(body_pose[:, 0]))
+    write_motion(tmp_path / "y_down.npz", y_down, transl @ flip.T)
+
+    def render(motion: str, up: str | None = None) -> torch.Tensor:
+        out = tmp_path / f"{motion}-{up}"
+        render_avatar_views(avatar_files[0], out, motion=tmp_path / f"{motion}.npz", camera_path=avatar_files[1], progress=False, up=up)
+        return torch.stack([read_image(out / name) for name in frame_names(frames)])
+
+    original, detected, misread = render("y_up"), render("y_down"), render("y_down", "y")
+    assert (original < 0.9).any()  # the avatar shows
+    assert (detected - original).abs().max() <= 2 / 255
+    assert (misread - original).abs().max() > 0.5
+
+
+def test_up_needs_a_motion_and_a_known_axis(tmp_path: Path, avatar_files):
+    with pytest.raises(AvatarPerfectError, match="--up x"):
+        render_avatar_views(avatar_files[0], tmp_path / "out", turntable=2, camera_path=avatar_files[1], up="x")
+    with pytest.raises(AvatarPerfectError, match="--up y"):
+        render_avatar_views(avatar_files[0], tmp_path / "out", turntable=2, camera_path=avatar_files[1], up="y")

