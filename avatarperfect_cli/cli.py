@@ -134,11 +134,11 @@ def train_initial(
     iterations: int = typer.Option(2000, help="Training steps (at least 1)."),
     resolution: Optional[int] = typer.Option(None, help="Longest image side to train at (>= 16; integer downscale)."),
     frames: Optional[str] = typer.Option(
-        None, help="Frame range START:END[:STEP], END inclusive [default: every frame, or the split file's frames]."
+        None, help="Frame range START:END[:STEP], END inclusive (default: every frame, or the split file's frames)."
     ),
     poses: str = typer.Option(
-        "auto", help="Pose file, relative to DATASET or absolute [default: poses/anim_nerf_train.npz, else "
-        "poses_optimized.npz, else poses.npz].", show_default=False,
+        "auto", help="Pose file, relative to DATASET or absolute (default: poses/anim_nerf_train.npz, else "
+        "poses_optimized.npz, else poses.npz).", show_default=False,
     ),  # fmt: skip
     body_model: str = typer.Option("anny", help="anny (built in) or smpl (needs --smpl-model-dir)."),
     smpl_model_dir: Optional[Path] = typer.Option(None, help="Folder with your licensed SMPL model files."),
@@ -175,11 +175,11 @@ def evaluate(
     ),
     iteration: Optional[int] = typer.Option(None, help="Avatar iteration [default: latest]."),
     frames: Optional[str] = typer.Option(
-        None, help="Frame range START:END[:STEP] of the test video [default: every frame, or the split file's frames]."
+        None, help="Frame range START:END[:STEP] of the test video (default: every frame, or the split file's frames)."
     ),
     poses: str = typer.Option(
-        "auto", help="Pose file, relative to the test video or absolute [default: poses/anim_nerf_test.npz, else "
-        "poses_optimized.npz, else poses.npz].", show_default=False,
+        "auto", help="Pose file, relative to the test video or absolute (default: poses/anim_nerf_test.npz, else "
+        "poses_optimized.npz, else poses.npz).", show_default=False,
     ),  # fmt: skip
 ) -> None:
     """IoU, PSNR and SSIM on held-out poses (moved by the workspace's translation offset, like its training poses)."""
@@ -209,7 +209,7 @@ def render(
     ),  # fmt: skip
     up: Optional[str] = typer.Option(
         None, "--up", help="The motion's up axis: y (SMPL, GART), -y (camera frame, InstantAvatar) or z (AMASS) "
-        "[default: detected from its first frame's root orientation].", show_default=False,
+        "(default: detected from its first frame's root orientation).", show_default=False,
     ),  # fmt: skip
     turntable: int = typer.Option(0, help="Frames of a camera circling the avatar."),
     iteration: Optional[int] = typer.Option(None, help="Workspace avatar iteration [default: latest]."),
@@ -302,6 +302,9 @@ def refine(
     edit_probability: float = typer.Option(0.3, help="Share of steps that train on an edit (the paper: 0.3)."),
     seed: int = typer.Option(0, help="Random seed."),
     revert_to: Optional[int] = typer.Option(None, "--revert-to", help="Make avatar iteration K current again (keeps the others)."),
+    delete_seen: bool = typer.Option(
+        False, "--delete-seen", help="Background strokes delete every Gaussian centred under them, also ones the video saw well."
+    ),
 ) -> None:
     """Re-optimise the avatar on the video plus every painted image (writes the next avatar iteration)."""
     from avatarperfect_cli.stages import refine as stage
@@ -309,7 +312,7 @@ def refine(
     if revert_to is not None:
         stage.revert(workspace, revert_to)
     else:
-        stage.refine(workspace, stage.RefineSettings(iterations, edit_probability, seed))
+        stage.refine(workspace, stage.RefineSettings(iterations, edit_probability, seed, protect_seen=not delete_seen))
 
 
 @app.command("simulate-user")

@@ -452,7 +452,8 @@ def _split_frames(root: Path, path: Path, rows: int, available: np.ndarray) -> t
     if rows == len(available):
         return available, None
     if rows > len(available):
-        raise InputFileError(path, f"holds {rows} pose rows, more than the {len(available)} images: it is not this video's split")
+        problem = f"holds {rows} pose rows, more than the {len(available)} images: it is not this video's split"
+        raise InputFileError(path, problem)
     split = path.stem.removeprefix(SPLIT_PREFIX)
     unknown = f"holds {rows} pose rows for {len(available)} images, and a split file does not store which frames they are"
     known = INSTANTAVATAR_SPLITS.get(root.resolve().name, {}).get(split)
@@ -460,7 +461,7 @@ def _split_frames(root: Path, path: Path, rows: int, available: np.ndarray) -> t
         indices, source = known.frame_ids(), f"InstantAvatar's {root.resolve().name} config"
     else:
         counts = {name: rows if name == split else _split_row_count(root, name) for name in ("train", "test")}
-        if split == "val" and counts["test"] == 0:
+        if split != "train" and counts["test"] == 0:  # val (or another split) with no test file: it follows train
             counts["test"] = rows
         step = round(len(available) / sum(counts.values()))
         start = 0 if split == "train" else counts["train"] * step

@@ -63,12 +63,18 @@ def detect_up_axis(body_pose: torch.Tensor, path: Path) -> str:
     axis = int(body_up.abs().argmax())
     name = ("-" if body_up[axis] < 0 else "") + "xyz"[axis]
     if name not in UP_AXES:
-        raise AvatarPerfectError(f"{path}: cannot tell which way is up (its first frame's body points along {name}); pass --up y, -y or z")
+        problem = f"cannot tell which way is up (its first frame's body points along {name}); pass --up y, -y or z"
+        raise AvatarPerfectError(f"{path}: {problem}")
     return name
 
 
 def place_motion(
-    body_pose: torch.Tensor, transl: torch.Tensor, up: str, world_up: torch.Tensor, toward_camera: torch.Tensor, start: torch.Tensor
+    body_pose: torch.Tensor,
+    transl: torch.Tensor,
+    up: str,
+    world_up: torch.Tensor,
+    toward_camera: torch.Tensor,
+    start: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The motion turned into a render's world: upright and facing the camera, starting at `start`.
 

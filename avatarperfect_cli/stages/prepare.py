@@ -90,7 +90,9 @@ def prepare(video: Path, out: Path, settings: PrepareSettings | None = None, pro
     """Write the People-Snapshot folder `out` for the person in `video` (see the module doc); returns `out`."""
     settings = settings or PrepareSettings()
     if settings.every < 1 or not (0.0 < settings.fov_degrees < 180.0):
-        raise AvatarPerfectError(f"--every must be at least 1 and --fov in (0, 180) degrees, got {settings.every} and {settings.fov_degrees}")
+        raise AvatarPerfectError(
+            f"--every must be at least 1 and --fov in (0, 180) degrees, got {settings.every} and {settings.fov_degrees}"
+        )
     pose_solution = _pose_solution()
     console = Console(stderr=True, quiet=not progress)
     frames, frame_numbers = read_video_frames(video, settings.every)
@@ -99,7 +101,8 @@ def prepare(video: Path, out: Path, settings: PrepareSettings | None = None, pro
     if not found.any():
         raise InputFileError(video, "MediaPipe finds no person in any frame")
     if not found.all():
-        console.print(f"{video}: no person found in {int((~found).sum())} of {len(found)} frames; they are left out", soft_wrap=True)
+        missing = int((~found).sum())
+        console.print(f"{video}: no person found in {missing} of {len(found)} frames; they are left out", soft_wrap=True)
     camera = assumed_camera(width, height, settings.fov_degrees)
     template = load_body_template("anny", phenotype=settings.phenotype)
     console.print(f"fitting the anny skeleton to {int(found.sum())} frames of landmarks")
@@ -188,7 +191,8 @@ def detect_landmarks(pose_solution: Any, frames: list[np.ndarray], progress: boo
             world.append([(point.x, point.y, point.z) for point in result.pose_world_landmarks.landmark])
             masks.append(result.segmentation_mask > 0.5)
     empty = (np.zeros((0, NUM_LANDMARKS, 2)), np.zeros((0, NUM_LANDMARKS)), np.zeros((0, NUM_LANDMARKS, 3)))
-    arrays = [np.asarray(values, dtype=np.float64) if values else blank for values, blank in zip((image, visibility, world), empty)]
+    found_values = (image, visibility, world)
+    arrays = [np.asarray(values, dtype=np.float64) if values else blank for values, blank in zip(found_values, empty)]
     mask_array = np.stack(masks) if masks else np.zeros((0, height, width), bool)
     return Landmarks(*arrays, mask_array), np.asarray(found, dtype=bool)
 

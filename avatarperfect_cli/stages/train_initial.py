@@ -140,7 +140,8 @@ def _transl_offset(
     if not fit.body.needs_offset(body_model, video):
         return torch.zeros(3)
     search = OffsetSearch()
-    masks = video if max(video.camera.width, video.camera.height) >= search.resolution else fit.video.load(dataset, search.resolution)
+    fine_enough = max(video.camera.width, video.camera.height) >= search.resolution
+    masks = video if fine_enough else fit.video.load(dataset, search.resolution)
     result = fit_transl_offset(template, masks, search)
     x, y, z = result.offset.tolist()
     console.print(

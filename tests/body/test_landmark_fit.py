@@ -40,7 +40,8 @@ def test_a_known_walk_is_recovered_from_its_landmarks():
     transforms = forward_kinematics(body_pose.double(), template.rest_joints.double(), transl.double())
     vertices = skin_points(template.vertices.double(), template.weights.double(), transforms) @ view[:3, :3].T + view[:3, 3]
     rows = vertices[..., 1] * camera.K[1, 1] / vertices[..., 2] + camera.K[1, 2]
-    targets = JointTargets(pixels[..., :2] / pixels[..., 2:], confidence, world, torch.stack([rows.min(1).values, rows.max(1).values], 1))
+    silhouette_rows = torch.stack([rows.min(1).values, rows.max(1).values], 1)
+    targets = JointTargets(pixels[..., :2] / pixels[..., 2:], confidence, world, silhouette_rows)
 
     fitted_pose, fitted_transl = fit_poses(template, camera, targets, LandmarkFitConfig(steps=250))
     fitted = joints_of(template, fitted_pose, fitted_transl)

@@ -94,7 +94,8 @@ def turning_motion(frames: int = 5) -> tuple[torch.Tensor, torch.Tensor]:
     body_pose = torch.randn(frames, 24, 3, generator=generator, dtype=torch.float64) * 0.3
     steps = torch.arange(frames, dtype=torch.float64)
     body_pose[:, 0] = torch.stack([0.1 * torch.sin(steps), 0.3 + 0.2 * steps, 0.05 * steps], dim=1)
-    transl = torch.stack([0.1 * steps, 0.02 * torch.cos(steps), -0.05 * steps], dim=1) + torch.tensor([0.3, 0.9, -0.2], dtype=torch.float64)
+    transl = torch.stack([0.1 * steps, 0.02 * torch.cos(steps), -0.05 * steps], dim=1)
+    transl += torch.tensor([0.3, 0.9, -0.2], dtype=torch.float64)
     return body_pose, transl
 
 
@@ -134,7 +135,11 @@ def test_a_motion_in_another_world_is_placed_like_the_y_up_original(rotation: to
     rest_joints = torch.randn(24, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64) * 0.3
     body_pose, transl = turning_motion()
     converted, converted_transl = convert_world(body_pose, transl, rotation, rest_joints[0])
-    place = {"world_up": torch.tensor([0.0, 1.0, 0.0]), "toward_camera": torch.tensor([0.2, 0.1, 3.0]), "start": torch.tensor([0.5, -0.1, 0.2])}
+    place = {
+        "world_up": torch.tensor([0.0, 1.0, 0.0]),
+        "toward_camera": torch.tensor([0.2, 0.1, 3.0]),
+        "start": torch.tensor([0.5, -0.1, 0.2]),
+    }
     original = joint_positions(*place_motion(body_pose.float(), transl.float(), "y", **place), rest_joints)
     placed = joint_positions(*place_motion(converted.float(), converted_transl.float(), up, **place), rest_joints)
     torch.testing.assert_close(placed, original, atol=1e-5, rtol=0)
@@ -150,7 +155,8 @@ def test_placing_faces_the_camera_and_keeps_the_root_path():
     world_up, toward, start = torch.tensor([0.0, 0.0, 1.0]), torch.tensor([1.0, 1.0, 0.4]), torch.tensor([1.0, 2.0, 3.0])
     placed_pose, placed_transl = place_motion(body_pose.float(), transl.float(), "y", world_up, toward, start)
     front = axis_angle_to_matrix(placed_pose[0, 0].double())[:, 2]
-    torch.testing.assert_close(front[:2] / front[:2].norm(), torch.tensor([1.0, 1.0], dtype=torch.float64) / math.sqrt(2), atol=1e-5, rtol=0)
+    diagonal = torch.tensor([1.0, 1.0], dtype=torch.float64) / math.sqrt(2)
+    torch.testing.assert_close(front[:2] / front[:2].norm(), diagonal, atol=1e-5, rtol=0)
     body_up = axis_angle_to_matrix(placed_pose[0, 0].double())[:, 1]
     original_up = axis_angle_to_matrix(body_pose[0, 0])[:, 1]
     assert abs(float(body_up[2]) - float(original_up[1])) < 1e-5  # the tilt from vertical is kept

@@ -76,8 +76,12 @@ def snapshot(root: Path) -> dict[str, str]:
 
 
 def hidden_entries(root: Path) -> list[str]:
-    """Paths under `root` whose name starts with a dot (what killed writers leave: staging, temporaries, locks)."""
-    return sorted(str(p.relative_to(root)) for p in root.rglob(".*")) if root.is_dir() else []
+    """Paths under `root` whose name starts with a dot (what killed writers leave: staging, temporaries, locks).
+    Safe while a running stage creates and deletes them (os.walk skips what vanished)."""
+    found = []
+    for folder, folders, files in os.walk(root):
+        found += [os.path.relpath(os.path.join(folder, name), root) for name in folders + files if name.startswith(".")]
+    return sorted(found)
 
 
 # ------------------------------------------------------------------------------------------------ the stages
@@ -88,12 +92,15 @@ class Stage:
     """name: unique label; prepare(ws, inputs) writes any input files under `inputs` and returns the command line
     (after `avatarperfect`) that runs the stage on workspace `ws`; base: the stage whose finished workspace this
     one starts from (None: no workspace yet); expected: the stage whose finished workspace is this one's new
-    state (None: its own reference run; then the files that run left alone must stay byte-identical)."""
+    state (None: its own reference run; then the files that run left alone must stay byte-identical);
+    refreshes: a folder of derived data (e.g. "visibility") that the stage brings up to date, in a commit of
+    its own, before its result: the old workspace with that folder as the reference left it also counts as old."""
 
     name: str
     prepare: Callable[[Path, Path], list[str]]
     base: str | None = None
     expected: str | None = None
+    refreshes: str | None = None
 
 
 def _train(*extra: str) -> Callable[[Path, Path], list[str]]:
@@ -127,7 +134,7 @@ STAGES: list[Stage] = [
     Stage("apply-edit --fill", lambda ws, inputs: ["apply-edit", str(ws), "--region", str(_region(ws, inputs)), "--fill", "white"], base="suggest"),
     Stage("apply-edit --erase", lambda ws, inputs: ["apply-edit", str(ws), "--region", str(_region(ws, inputs)), "--erase", "center"], base="suggest"),
     Stage("apply-edit --remove", lambda ws, inputs: ["apply-edit", str(ws), "--remove", "1"], base="apply-edit"),
-    Stage("refine", lambda ws, inputs: ["refine", str(ws), "--iterations", "5"], base="apply-edit"),
+    Stage("refine", lambda ws, inputs: ["refine", str(ws), "--iterations", "5"], base="apply-edit", refreshes="visibility"),
     Stage("refine --revert-to", lambda ws, inputs: ["refine", str(ws), "--revert-to", "0"], base="refine"),
     Stage("evaluate", lambda ws, inputs: ["evaluate", str(ws), "--test", str(SAMPLE / "test"), "--frames", "0:19:10"], base="refine"),
     Stage("train-initial --force", _train("--force"), base="refine", expected="train-initial"),
@@ -175,8 +182,8 @@ def summarise(outcomes: list[Outcome]) -> dict:
 def markdown_table(results: dict[str, dict]) -> str:
     """The counts of `summarise` per stage as a markdown table (for docs/reliability.md)."""
     lines = [
-        "| stage | signal | kills | old state | new state | lost | exit statuses |",
-        "|---|---|---:|---:|---:|---:|---|",
+        "| stage | signal | kills | in a save | old state | new state | lost | exit statuses |",
+        "|---|---|---:|---:|---:|---:|---:|---|",
     ]
     for stage, summary in results.items():
         if "by_signal" not in summary:
@@ -185,7 +192,7 @@ def markdown_table(results: dict[str, dict]) -> str:
             states = counts["states"]
             statuses = ", ".join(f"{status}: {count}" for status, count in counts["exit_statuses"].items())
             lines.append(
-                f"| {stage} | {name} | {counts['kills']} | {states.get('old', 0)} | {states.get('new', 0)} "
+                f"| {stage} | {name} | {counts['kills']} | {counts['phases'].get('save', 0)} | {states.get('old', 0)} | {states.get('new', 0)} "
                 f"| {states.get('lost', 0)} | {statuses} |"
             )
     return "\n".join(lines)
@@ -338,7 +345,7 @@ class Harness:
             problems.append(f"left after the next command: {leftovers}")
         now = snapshot(workspace)
         reference = self.reference(stage.expected or stage.name)
-        if now == before:
+        if now == before or _old_but_refreshed(stage, now, before, reference.after):
             outcome.state = "old"
         elif self._is_new_state(stage, now, before, reference, problems):
             damage = self.check_workspace(workspace, folder)
@@ -390,6 +397,20 @@ class Harness:
             if not path.stem.isdigit() or int(path.stem) not in ws.committed_avatars():
                 problems.append(f"{path.name} is not committed")
         return problems
+
+
+def _old_but_refreshed(stage: Stage, now: dict[str, str], before: dict[str, str], expected: dict[str, str]) -> bool:
+    """Whether `now` is the old state but for the stage's refreshed folder, which holds the reference's files."""
+    if stage.refreshes is None:
+        return False
+
+    def split(files: dict[str, str]) -> tuple[dict[str, str], set[str]]:
+        """(the files outside the refreshed folder with their hashes, the paths inside it)"""
+        inside = {path for path in files if Path(path).parts[0] == stage.refreshes}
+        return {path: digest for path, digest in files.items() if path not in inside}, inside
+
+    (now_outside, now_inside), (before_outside, _), (_, expected_inside) = split(now), split(before), split(expected)
+    return now_outside == before_outside and now_inside == expected_inside
 
 
 def _difference(now: dict[str, str], before: dict[str, str], expected: dict[str, str]) -> str:

@@ -64,7 +64,8 @@ def test_prepare_recovers_masks_and_joints_of_a_walking_turning_subject(tmp_path
     assert np.median(relative) < 0.05, np.median(relative)  # joints about the pelvis (MPJPE), over all 24 joints
     assert np.median(np.linalg.norm(fitted - truth, axis=-1)) < 0.10  # absolute, depth included
 
-    result = CliRunner().invoke(app, ["train-initial", str(tmp_path / "prepared"), str(tmp_path / "ws"), "--iterations", "5", "--resolution", "64"])
+    fast = ["--iterations", "5", "--resolution", "64"]
+    result = CliRunner().invoke(app, ["train-initial", str(tmp_path / "prepared"), str(tmp_path / "ws"), *fast])
     assert result.exit_code == 0, result.output
     assert open_workspace(tmp_path / "ws").manifest["transl_offset"] == [0.0, 0.0, 0.0]  # fitted for anny: no offset
 

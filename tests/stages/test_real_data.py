@@ -46,7 +46,8 @@ def instantavatar_folder(tmp_path_factory) -> Path:
     shutil.copytree(SAMPLE / "masks", root / "masks")
     with np.load(SAMPLE / "cameras.npz") as camera:
         extrinsic = torch.from_numpy(camera["extrinsic"])
-        np.savez(root / "cameras.npz", intrinsic=camera["intrinsic"], extrinsic=np.eye(4), height=camera["height"], width=camera["width"])
+        size = {"height": camera["height"], "width": camera["width"]}
+        np.savez(root / "cameras.npz", intrinsic=camera["intrinsic"], extrinsic=np.eye(4), **size)
     video = load_people_snapshot(SAMPLE, with_images=False)
     rest_pelvis = load_body_template("anny", phenotype=video.subject["phenotype"]).rest_joints[0].double()
     rotation, shift = extrinsic[:3, :3], extrinsic[:3, 3]

@@ -159,9 +159,15 @@ def test_apply_edit_refine_revert_loop(workspace: Path, tmp_path: Path):
     pose = read_pose(folder / "pose.json")
     from avatarperfect_cli.refinement.erase import centres_in_region
 
-    expected_deleted = int(centres_in_region(avatar, pose, background).sum())
+    under_stroke = centres_in_region(avatar, pose, background)
     result = invoke("refine", workspace, "--iterations", "10")
     assert result.exit_code == 0, result.output
+    with np.load(workspace / "visibility" / "000.npz") as data:  # V with the edit, computed by refine
+        visibility = torch.from_numpy(data["visibility"])
+        assert list(data["edits"]) == ["001"]
+    seen = visibility >= visibility.mean()
+    expected_deleted = int((under_stroke & ~seen).sum())
+    assert 0 < expected_deleted < int(under_stroke.sum())  # some spared: the video saw them
     ws = open_workspace(workspace)
     entry = ws.manifest["history"][-1]
     assert ws.iteration == 1 and entry["avatar"] == 1 and entry["edits"] == [1] and entry["applied_edits"] == [1]

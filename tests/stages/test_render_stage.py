@@ -247,7 +247,8 @@ def test_a_y_down_motion_renders_like_the_y_up_original(tmp_path: Path, avatar_f
 
     def render(motion: str, up: str | None = None) -> torch.Tensor:
         out = tmp_path / f"{motion}-{up}"
-        render_avatar_views(avatar_files[0], out, motion=tmp_path / f"{motion}.npz", camera_path=avatar_files[1], progress=False, up=up)
+        motion_file = tmp_path / f"{motion}.npz"
+        render_avatar_views(avatar_files[0], out, motion=motion_file, camera_path=avatar_files[1], progress=False, up=up)
         return torch.stack([read_image(out / name) for name in frame_names(frames)])
 
     original, detected, misread = render("y_up"), render("y_down"), render("y_down", "y")
