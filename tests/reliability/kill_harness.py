@@ -285,7 +285,7 @@ class Harness:
         with open(stdout, "wb") as out, open(stderr, "wb") as err:
             process = subprocess.Popen(
                 [sys.executable, "-m", "avatarperfect_cli", *argv], stdout=out, stderr=err,
-                env={**os.environ, SAVE_DELAY_VARIABLE: str(SAVE_DELAY)}, preexec_fn=_default_sigint,
+                env={**os.environ, SAVE_DELAY_VARIABLE: str(SAVE_DELAY)}, preexec_fn=default_sigint,
             )  # fmt: skip
             moment, lock_seen = self._kill_at_moment(process, workspace, signum, phase, rng, self.reference(stage.expected or stage.name))
             status = process.wait(timeout=600)
@@ -435,7 +435,7 @@ def _interrupt_status(outcome: Outcome) -> bool:
     return status == -signal.SIGINT and outcome.stderr_tail.rstrip().endswith("interrupted: nothing was changed")
 
 
-def _default_sigint() -> None:
+def default_sigint() -> None:
     """In the child: Ctrl-C's default, even when the harness was started with SIGINT ignored (a background job)."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 

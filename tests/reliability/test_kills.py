@@ -20,6 +20,7 @@ import pytest
 
 from avatarperfect_cli.io.workspace import lock_path
 from tests.reliability.kill_harness import (
+    default_sigint,
     SAMPLE,
     STAGES,
     STAGES_BY_NAME,
@@ -79,7 +80,7 @@ def test_a_second_stage_on_the_workspace_refuses_at_once(harness: Harness, tmp_p
     log = tmp_path / "holder.txt"
     retrain = ["train-initial", str(SAMPLE / "train"), str(workspace), "--resolution", "64", "--iterations", "100000", "--force"]
     with open(log, "wb") as holder_stderr:
-        holder = subprocess.Popen([*CLI, *retrain], stderr=holder_stderr)
+        holder = subprocess.Popen([*CLI, *retrain], stderr=holder_stderr, preexec_fn=default_sigint)
     try:
         _wait_for(lock_path(workspace).exists, holder)
         seconds = {}
@@ -110,7 +111,9 @@ def test_a_second_stage_on_the_workspace_refuses_at_once(harness: Harness, tmp_p
 def test_a_killed_frames_render_leaves_nothing_after_the_next_render(harness: Harness, tmp_path: Path):
     workspace = harness.reference("train-initial").workspace
     out = tmp_path / "frames"
-    render = subprocess.Popen([*CLI, "render", str(workspace), "--turntable", "500", "-o", str(out)], stderr=subprocess.DEVNULL)
+    render = subprocess.Popen(
+        [*CLI, "render", str(workspace), "--turntable", "500", "-o", str(out)], stderr=subprocess.DEVNULL, preexec_fn=default_sigint
+    )
     _wait_for(lambda: any(tmp_path.glob(".frames.*.tmp/frame_0001.png")), render)
     render.send_signal(signal.SIGKILL)
     render.wait(timeout=60)
