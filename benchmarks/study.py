@@ -13,8 +13,9 @@ condition runs `--rounds` rounds on its own copy of it:
                    centres fall where the simulated user paints background; no training
     erase-splat    the same with Erase Splat (visibility > 0.01 at a selected pixel)
 Columns: held-out IoU, PSNR, SSIM (full frame on white, as the paper), PSNR on the subject's bounding
-box, PSNR over the hidden regions (inner arms, armpits, crotch), training-frame PSNR change (worst
-round), Gaussians deleted, seconds per round (suggest + refine, not the user). Writes OUT_DIR/study.md
+box, PSNR over the hidden texture regions (inner arms, armpits, crotch), PSNR over the surface the
+training video never showed (template faces no training frame's pixel shows: soles, the top of the head,
+...), training-frame PSNR change (worst round), Gaussians deleted, seconds per round (suggest + refine, not the user). Writes OUT_DIR/study.md
 (the tables, as in docs/study.md), OUT_DIR/study.json and OUT_DIR/images/*.png.
 """
 
@@ -61,21 +62,29 @@ SHOWN_FRAMES = (3, 12, 18, 27)  # held-out frames in the pictures: walking, arms
 
 @dataclass
 class HeldOut:
-    """The held-out video with the exact hidden-region pixels of every frame."""
+    """The held-out video with, per frame, the exact pixels of the hidden texture regions and of the surface
+    the training video never showed (`unseen`, both (T, H, W) bool)."""
 
     images: torch.Tensor
     masks: torch.Tensor
     hidden: torch.Tensor
+    unseen: torch.Tensor
     poses: list[PoseFile]
 
 
 def held_out(sample: Path, downscale: int) -> HeldOut:
     test = load_people_snapshot(sample / "test", downscale=downscale)
+    train = load_people_snapshot(sample / "train", downscale=downscale)
     subject = SyntheticSubject.from_dataset(sample / "test")
-    labels = [torch.from_numpy(subject.render(test.body_pose[t], test.transl[t], test.camera).labels) for t in range(len(test))]
-    hidden = torch.stack([torch.isin(label, torch.tensor([REGION[n] for n in HIDDEN_REGIONS])) for label in labels])
+    unseen_faces = subject.unseen_faces(train.body_pose, train.transl, train.camera)
+    hidden_labels = torch.tensor([REGION[n] for n in HIDDEN_REGIONS])
+    hidden, unseen = [], []
+    for t in range(len(test)):
+        hidden.append(torch.isin(torch.from_numpy(subject.render(test.body_pose[t], test.transl[t], test.camera).labels), hidden_labels))
+        ids = subject.face_ids(test.body_pose[t], test.transl[t], test.camera)
+        unseen.append(torch.from_numpy((ids >= 0) & unseen_faces[ids.clip(min=0)]))
     poses = [PoseFile(test.body_pose[t], test.transl[t], test.camera) for t in range(len(test))]
-    return HeldOut(test.images, test.masks, hidden, poses)
+    return HeldOut(test.images, test.masks, torch.stack(hidden), torch.stack(unseen), poses)
 
 
 def masked_psnr(render: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor) -> float:
@@ -88,7 +97,7 @@ def masked_psnr(render: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor) -
 def score(avatar: Avatar, data: HeldOut) -> tuple[dict[str, float], list[torch.Tensor]]:
     """Mean held-out metrics of `avatar`, and its renders of SHOWN_FRAMES."""
     rows, shown = [], []
-    hidden_errors, hidden_pixels = 0.0, 0
+    errors = {"hidden": [0.0, 0], "unseen": [0.0, 0]}  # squared error, values; over all frames' pixels together
     with torch.no_grad():
         for t, pose in enumerate(data.poses):
             out = render_avatar(avatar, pose.body_pose, pose.transl, pose.camera, WHITE)
@@ -100,12 +109,14 @@ def score(avatar: Avatar, data: HeldOut) -> tuple[dict[str, float], list[torch.T
                 "iou": metrics.iou(out.alpha > 0.5, data.masks[t]), "psnr": metrics.psnr(render, truth),
                 "ssim": metrics.ssim(render, truth), "psnr_bbox": masked_psnr(render, truth, box),
             })  # fmt: skip
-            hidden_errors += float(((render.double() - truth.double()) ** 2)[data.hidden[t]].sum())
-            hidden_pixels += int(data.hidden[t].sum()) * 3
+            for name, masks in (("hidden", data.hidden), ("unseen", data.unseen)):
+                errors[name][0] += float(((render.double() - truth.double()) ** 2)[masks[t]].sum())
+                errors[name][1] += int(masks[t].sum()) * 3
             if t in SHOWN_FRAMES:
                 shown.append(render)
     mean = {key: statistics.fmean(row[key] for row in rows) for key in rows[0]}
-    mean["psnr_hidden"] = -10 * math.log10(hidden_errors / max(hidden_pixels, 1))  # over all hidden pixels together
+    for name, (error, values) in errors.items():
+        mean[f"psnr_{name}"] = -10 * math.log10(error / values) if values else math.nan
     return mean, shown
 
 
@@ -201,7 +212,7 @@ def run_subject(preset: str, out: Path, rounds: int, resolution: int, iterations
         print(f"  {preset}: initial avatar trained in {time.perf_counter() - start:.0f} s", flush=True)
     data = held_out(sample, 1)
     train_video = load_people_snapshot(sample / "train", downscale=1)
-    train = HeldOut(train_video.images, train_video.masks, torch.zeros(0),
+    train = HeldOut(train_video.images, train_video.masks, torch.zeros(0), torch.zeros(0),
                     [PoseFile(train_video.body_pose[t], train_video.transl[t], train_video.camera) for t in range(len(train_video))])  # fmt: skip
     subject = SyntheticSubject.from_dataset(sample / "train")
     base_train_psnr = training_psnr(Avatar.load(open_workspace(initial).require_avatar()), train)
@@ -221,7 +232,7 @@ def run_subject(preset: str, out: Path, rounds: int, resolution: int, iterations
 
 
 COLUMNS = (("iou", "IoU", "{:.4f}"), ("psnr", "PSNR", "{:.2f}"), ("ssim", "SSIM", "{:.4f}"), ("psnr_bbox", "PSNR box", "{:.2f}"),
-           ("psnr_hidden", "PSNR hidden", "{:.2f}"), ("worst_training_change", "train dPSNR", "{:+.2f}"),
+           ("psnr_hidden", "PSNR hidden", "{:.2f}"), ("psnr_unseen", "PSNR unseen", "{:.2f}"), ("worst_training_change", "train dPSNR", "{:+.2f}"),
            ("deleted", "deleted", "{:.0f}"), ("seconds_per_round", "s/round", "{:.1f}"))  # fmt: skip
 
 

@@ -4,9 +4,11 @@
 
 WORKSPACE: a workspace trained on SAMPLE_DIR/train (e.g. `make demo`'s demo/ws after train-initial).
 Prints tables of
-  1. the share of the hidden texture regions (inner arms, armpits, crotch) each kind of view shows:
-     the suggestion (body pose + camera), the canonical-pose camera-only suggestion, and the median of
-     20 random natural poses and cameras (pixels of the subject's exact render at the view);
+  1. how much of what the video never showed each kind of view shows: the suggestion (body pose +
+     camera), the canonical-pose camera-only suggestion, and the median of 20 random natural poses and
+     cameras. Two counts on the subject's exact render at the view: pixels of unseen surface (template
+     faces no pixel of any training frame shows: soles, the top of the head, armpits, ...) and pixels
+     of the texture's hidden regions (inner arms, armpits, crotch: the study's PSNR-hidden regions);
   2. joint-limit and self-intersection checks of the suggestions of `--seeds` seeds;
   3. five successive suggestions, each registered as an edit view (a simulated user's painting) before
      the next, and a contact sheet of them;
@@ -26,9 +28,11 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from avatarperfect_cli.avatar.model import Avatar
+from avatarperfect_cli.datasets import load_people_snapshot
 from avatarperfect_cli.io import read_image, read_pose, write_image
 from avatarperfect_cli.io.workspace import open_workspace
 from avatarperfect_cli.refinement.collision import BodyCapsules
@@ -49,6 +53,12 @@ def hidden_pixels(subject: SyntheticSubject, pose) -> int:
     """Pixels of the subject's exact render at `pose` that show the hidden texture regions."""
     labels = torch.from_numpy(subject.render(pose.body_pose, pose.transl, pose.camera).labels)
     return int(torch.isin(labels, HIDDEN_LABELS).sum())
+
+
+def unseen_pixels(subject: SyntheticSubject, unseen: np.ndarray, pose) -> int:
+    """Pixels of the subject's exact render at `pose` that show faces flagged in `unseen` (F,) bool."""
+    ids = subject.face_ids(pose.body_pose, pose.transl, pose.camera)
+    return int(unseen[ids[ids >= 0]].sum())
 
 
 def table(title: str, header: list[str], rows: list[list[str]]) -> None:
@@ -73,6 +83,7 @@ def main() -> None:
     parser.add_argument("--images", type=Path, default=Path("docs/images"))
     parser.add_argument("--seeds", type=int, default=50)
     parser.add_argument("--randoms", type=int, default=20)
+    parser.add_argument("--shown-seeds", type=int, default=10, help="seeds whose views are counted (table 1)")
     args = parser.parse_args()
     subject = SyntheticSubject.from_dataset(args.sample / "train")
     scratch = Path(tempfile.mkdtemp(prefix="suggest-bench-"))
@@ -89,24 +100,33 @@ def main() -> None:
     def run(mode: str, seed: int):
         return suggest_view(avatar, visibility, prior, capsules, reference, SuggestConfig(body_pose=mode, seed=seed))
 
-    rows, validity = [], {"limit": 0, "intersect": 0}
-    suggested_hidden, seconds = [], []
+    train = load_people_snapshot(args.sample / "train", downscale=1)
+    unseen = subject.unseen_faces(train.body_pose, train.transl, train.camera)
+
+    def shown(pose) -> tuple[int, int]:
+        return unseen_pixels(subject, unseen, pose), hidden_pixels(subject, pose)
+
+    validity = {"limit": 0, "intersect": 0}
+    suggested_shown, seconds = [], []
     for seed in range(args.seeds):
         start = time.perf_counter()
         result = run("optimise", seed)
         seconds.append(time.perf_counter() - start)
         validity["limit"] += bool(joint_limit_violations(result.pose.body_pose))
         validity["intersect"] += bool(capsules.intersecting_pairs(result.pose.body_pose))
-        if seed < 5:
-            suggested_hidden.append(hidden_pixels(subject, result.pose))
-    canonical = [hidden_pixels(subject, run("canonical", seed).pose) for seed in range(5)]
-    randoms = [hidden_pixels(subject, run("random", seed).pose) for seed in range(args.randoms)]
-    median_random = statistics.median(randoms)
-    for name, values in (("suggested (pose + camera)", suggested_hidden), ("canonical pose, camera only", canonical)):
-        median = statistics.median(values)
-        rows.append([name, f"{median:.0f}", f"{median / max(median_random, 1):.2f}x", " ".join(str(v) for v in values)])
-    rows.append([f"random natural pose + camera ({args.randoms})", f"{median_random:.0f}", "1.00x", f"range {min(randoms)}-{max(randoms)}"])
-    table("Hidden-region pixels shown (inner arms, armpits, crotch), seeds 0-4", ["view", "median px", "vs random", "per seed"], rows)
+        if seed < args.shown_seeds:
+            suggested_shown.append(shown(result.pose))
+    canonical = [shown(run("canonical", seed).pose) for seed in range(args.shown_seeds)]
+    randoms = [shown(run("random", seed).pose) for seed in range(args.randoms)]
+    for column, title in ((0, "unseen surface (faces no training frame shows)"), (1, "hidden texture regions (inner arms, armpits, crotch)")):
+        median_random = statistics.median(r[column] for r in randoms)
+        rows = []
+        for name, values in (("suggested (pose + camera)", suggested_shown), ("canonical pose, camera only", canonical)):
+            median = statistics.median(v[column] for v in values)
+            rows.append([name, f"{median:.0f}", f"{median / max(median_random, 1):.2f}x", " ".join(str(v[column]) for v in values)])
+        rows.append([f"random natural pose + camera ({args.randoms})", f"{median_random:.0f}", "1.00x",
+                     f"range {min(r[column] for r in randoms)}-{max(r[column] for r in randoms)}"])  # fmt: skip
+        table(f"Pixels of {title} shown, seeds 0-{args.shown_seeds - 1}", ["view", "median px", "vs random", "per seed"], rows)
     table(
         f"Validity of {args.seeds} suggestions (seeds 0-{args.seeds - 1})",
         ["check", "violations"],
@@ -124,10 +144,10 @@ def main() -> None:
         pose = read_pose(folder / "pose.json")
         summary = json.loads((folder / "suggestion.json").read_text())
         rows.append([folder.name, f"{summary['azimuth_deg']:.0f}", f"{summary['elevation_deg']:.0f}",
-                     f"{summary['objective']:.0f}", str(hidden_pixels(subject, pose))])  # fmt: skip
+                     f"{summary['objective']:.0f}", *map(str, shown(pose))])  # fmt: skip
         frames.append(torch.cat([read_image(folder / "suggested.png", "RGB"), read_image(folder / "guide.png", "RGB")], dim=0))
     table("Five successive suggestions (each registered as an edit before the next)",
-          ["suggestion", "azimuth deg", "elevation deg", "objective", "hidden px"], rows)  # fmt: skip
+          ["suggestion", "azimuth deg", "elevation deg", "objective", "unseen px", "hidden px"], rows)  # fmt: skip
     args.images.mkdir(parents=True, exist_ok=True)
     sheet = torch.cat(frames, dim=1)
     write_image(args.images / "suggest_sequence.png", torch.nn.functional.interpolate(

@@ -3,6 +3,8 @@
 `make_sample` renders its videos through `SyntheticSubject.render_vertices`, so `SyntheticSubject.render`
 at a frame's stored pose gives that frame's pixels. The `labels` of a render name the texture region of
 each pixel (indices into texture.REGIONS), which locates the hidden regions (texture.HIDDEN_REGIONS).
+`unseen_faces` finds the surface a video never showed, whatever its texture region (soles, the top of
+the head): the exact counterpart of the barely seen Gaussians an avatar's visibility estimates.
 """
 
 from __future__ import annotations
@@ -81,6 +83,25 @@ class SyntheticSubject:
             vertices, faces, self.template.uvs.double().numpy(), self.template.face_uvs.numpy(), self.texture.image,
             camera, normals=vertex_normals(vertices, faces), ambient=AMBIENT, face_labels=self.texture.face_regions,
         )  # fmt: skip
+
+    def face_ids(self, body_pose: torch.Tensor, transl: torch.Tensor, camera: Camera) -> np.ndarray:
+        """(H, W) int32 index of the template face each pixel shows (most of its subsamples), -1 on the
+        background. body_pose: (24, 3) axis-angle, radians; transl: (3,) metres."""
+        vertices = skin_template(self.template, torch.as_tensor(body_pose)[None], torch.as_tensor(transl)[None])[0].numpy()
+        faces = self.template.faces.numpy()
+        face_index = np.arange(len(faces), dtype=np.int32)
+        return render_mesh(
+            vertices, faces, self.template.uvs.double().numpy(), self.template.face_uvs.numpy(), self.texture.image,
+            camera, face_labels=face_index,
+        ).labels  # fmt: skip
+
+    def unseen_faces(self, body_poses: torch.Tensor, transls: torch.Tensor, camera: Camera) -> np.ndarray:
+        """(F,) bool: the template faces no pixel of any frame shows. body_poses: (T, 24, 3); transls: (T, 3)."""
+        seen = np.zeros(len(self.template.faces), dtype=bool)
+        for body_pose, transl in zip(body_poses, transls):
+            ids = self.face_ids(body_pose, transl, camera)
+            seen[ids[ids >= 0]] = True
+        return ~seen
 
 
 def skin_template(template: BodyTemplate, body_pose: torch.Tensor, transl: torch.Tensor) -> torch.Tensor:

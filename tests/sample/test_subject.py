@@ -82,6 +82,27 @@ def test_render_follows_the_translation(subject: SyntheticSubject) -> None:
     np.testing.assert_array_equal(still.rgb[background], 1.0)
 
 
+def test_unseen_faces_are_what_no_frame_shows(subject: SyntheticSubject) -> None:
+    video = load_people_snapshot(SAMPLE / "train")
+    camera = video.camera
+    unseen = subject.unseen_faces(video.body_pose[:1], video.transl[:1], camera)
+    front = subject.face_ids(video.body_pose[0], video.transl[0], camera)
+    assert ((front >= 0) == (subject.render(video.body_pose[0], video.transl[0], camera).labels >= 0)).all()
+    assert not unseen[front[front >= 0]].any()  # the frame itself shows only seen faces
+    # From behind (the camera turned 180 degrees about the vertical through the body), one front frame
+    # saw almost none of what shows.
+    pelvis = subject.template.rest_joints[0].double() + video.transl[0].double()
+    turn = torch.diag(torch.tensor([-1.0, 1.0, -1.0], dtype=torch.float64))
+    behind = torch.eye(4, dtype=torch.float64)
+    behind[:3, :3] = camera.world_to_camera[:3, :3].double() @ turn
+    behind[:3, 3] = camera.world_to_camera[:3, 3].double() + camera.world_to_camera[:3, :3].double() @ (pelvis - turn @ pelvis)
+    back = subject.face_ids(video.body_pose[0], video.transl[0], Camera(camera.K, behind.float(), camera.width, camera.height))
+    assert (back >= 0).sum() > 0.5 * (front >= 0).sum()
+    assert unseen[back[back >= 0]].mean() > 0.8
+    # Every frame of the video leaves less unseen than its first frame alone.
+    assert subject.unseen_faces(video.body_pose, video.transl, camera).sum() < unseen.sum()
+
+
 def _copy_with_subject(tmp_path: Path, edit: dict | None) -> Path:
     folder = tmp_path / "dataset"
     folder.mkdir()
