@@ -23,6 +23,7 @@ app = typer.Typer(
 )
 
 F = TypeVar("F", bound=Callable[..., object])
+DEVICE_HELP = "auto (cuda when torch sees a CUDA GPU, else cpu), cpu or cuda: where the avatar is rendered and trained."
 
 
 def _raise_interrupt(signum: int, frame: object) -> None:
@@ -150,19 +151,23 @@ def train_initial(
     seed: int = typer.Option(0, help="Random seed."),
     refine_poses: bool = typer.Option(False, "--refine-poses", help="Also refine each frame's SMPL pose (real videos)."),
     force: bool = typer.Option(False, "--force", help="Replace an existing workspace."),
+    device: str = typer.Option("auto", help=DEVICE_HELP),
 ) -> None:
     """Fit the first avatar from a monocular video."""
+    from avatarperfect_cli.devices import resolve_device
     from avatarperfect_cli.io.outputs import check_writable_folder
     from avatarperfect_cli.sample.generate import MIN_RESOLUTION
     from avatarperfect_cli.stages.train_initial import BodySettings, InitialFit, VideoSettings, parse_transl_offset
     from avatarperfect_cli.stages.train_initial import train_initial as run
 
+    torch_device = resolve_device(device)
     _require_in_range("--iterations", iterations, 1)
     _require_in_range("--resolution", resolution, MIN_RESOLUTION)
     _require_in_range("--sh-degree", sh_degree, 0, 3)
     check_writable_folder(workspace)
     body = BodySettings(body_model, smpl_model_dir, parse_transl_offset(transl_offset))
-    fit = InitialFit(VideoSettings(_frame_range(frames), resolution, poses), body, iterations, sh_degree, seed, refine_poses)
+    video = VideoSettings(_frame_range(frames), resolution, poses)
+    fit = InitialFit(video, body, iterations, sh_degree, seed, refine_poses, torch_device)
     run(dataset, workspace, fit, force)
 
 
@@ -181,11 +186,14 @@ def evaluate(
         "auto", help="Pose file, relative to the test video or absolute (default: poses/anim_nerf_test.npz, else "
         "poses_optimized.npz, else poses.npz).", show_default=False,
     ),  # fmt: skip
+    device: str = typer.Option("auto", help=DEVICE_HELP),
 ) -> None:
     """IoU, PSNR and SSIM on held-out poses (moved by the workspace's translation offset, like its training poses)."""
+    from avatarperfect_cli.devices import resolve_device
     from avatarperfect_cli.stages.evaluate import evaluate as run
 
-    run(workspace, test, iteration, _frame_range(frames), poses=poses)
+    torch_device = resolve_device(device)
+    run(workspace, test, iteration, _frame_range(frames), poses=poses, device=torch_device)
 
 
 @app.command("render")
@@ -215,18 +223,22 @@ def render(
     iteration: Optional[int] = typer.Option(None, help="Workspace avatar iteration [default: latest]."),
     background: str = typer.Option("white", help="white, black or R,G,B in 0..1."),
     fps: float = typer.Option(30.0, help="Frame rate of videos."),
-    device: str = typer.Option("auto", help="auto, cpu or cuda (static PLY renders)."),
+    device: str = typer.Option("auto", help=DEVICE_HELP),
     force: bool = typer.Option(
         False, "--force", help="Write frames into a folder that holds other files (they are kept; its frame_NNNN.png are replaced)."
     ),
 ) -> None:
     """Render static Gaussians, or a skinned avatar in a pose, a motion or a turntable."""
+    from avatarperfect_cli.devices import resolve_device
     from avatarperfect_cli.stages import render as stage
 
+    torch_device = resolve_device(device)
     if camera is not None and pose is None and motion is None and turntable == 0 and up is None:
-        stage.render_ply(source, camera, output, None, background, device)
+        stage.render_ply(source, camera, output, None, background, torch_device)
     else:
-        stage.render_avatar_views(source, output, pose, motion, turntable, camera, iteration, background, fps, force=force, up=up)
+        stage.render_avatar_views(
+            source, output, pose, motion, turntable, camera, iteration, background, fps, force=force, up=up, device=torch_device
+        )
 
 
 @app.command("visibility")
@@ -234,11 +246,14 @@ def render(
 def visibility(
     workspace: Path = typer.Argument(..., help="Workspace folder."),
     edit_weight: float = typer.Option(0.01, help="Weight w of the edit views in V (the paper: 0.01)."),
+    device: str = typer.Option("auto", help=DEVICE_HELP),
 ) -> None:
     """Accumulate per-Gaussian visibility over the video and past edits (ws/visibility/NNN.npz + .png)."""
+    from avatarperfect_cli.devices import resolve_device
     from avatarperfect_cli.stages.visibility import visibility as run
 
-    run(workspace, edit_weight)
+    torch_device = resolve_device(device)
+    run(workspace, edit_weight, device=torch_device)
 
 
 @app.command("suggest")
@@ -254,14 +269,17 @@ def suggest(
     resolution: int = typer.Option(128, help="Longest image side while optimising, pixels."),
     edit_weight: float = typer.Option(0.01, help="Weight w of the edit views in V."),
     seed: int = typer.Option(0, help="Seed; the same seed gives the same suggestion."),
+    device: str = typer.Option("auto", help=DEVICE_HELP),
 ) -> None:
     """Suggest the next body pose and camera to paint, and render it (ws/suggestions/NNN/)."""
+    from avatarperfect_cli.devices import resolve_device
     from avatarperfect_cli.refinement.suggest import SuggestConfig
     from avatarperfect_cli.stages.suggest import SuggestSettings
     from avatarperfect_cli.stages.suggest import suggest as run
 
+    torch_device = resolve_device(device)
     search = SuggestConfig(body_pose="random" if random_view else body_pose, starts=starts, steps=steps, resolution=resolution, seed=seed)
-    run(workspace, SuggestSettings(search, pose_prior, vposer_dir, edit_weight))
+    run(workspace, SuggestSettings(search, pose_prior, vposer_dir, edit_weight, torch_device))
 
 
 @app.command("apply-edit")
@@ -305,14 +323,18 @@ def refine(
     delete_seen: bool = typer.Option(
         False, "--delete-seen", help="Background strokes delete every Gaussian centred under them, also ones the video saw well."
     ),
+    device: str = typer.Option("auto", help=DEVICE_HELP),
 ) -> None:
     """Re-optimise the avatar on the video plus every painted image (writes the next avatar iteration)."""
+    from avatarperfect_cli.devices import resolve_device
     from avatarperfect_cli.stages import refine as stage
 
+    torch_device = resolve_device(device)
     if revert_to is not None:
         stage.revert(workspace, revert_to)
     else:
-        stage.refine(workspace, stage.RefineSettings(iterations, edit_probability, seed, protect_seen=not delete_seen))
+        settings = stage.RefineSettings(iterations, edit_probability, seed, protect_seen=not delete_seen, device=torch_device)
+        stage.refine(workspace, settings)
 
 
 @app.command("simulate-user")

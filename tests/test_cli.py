@@ -99,3 +99,25 @@ def test_an_unwritable_workspace_path_is_refused_before_training(tmp_path: Path)
     result = CliRunner().invoke(app, ["train-initial", str(tmp_path / "data"), str(tmp_path / "file" / "ws")])
     assert result.exit_code == 2
     assert result.stderr.strip() == f"error: {tmp_path / 'file' / 'ws'}: cannot be written: {tmp_path / 'file'} is not a folder"
+
+
+@pytest.mark.parametrize("command", ["train-initial", "render"])
+def test_device_cuda_without_a_gpu_is_one_line_and_writes_nothing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, command: str
+):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    sample = Path(__file__).resolve().parents[1] / "examples" / "sample" / "train"
+    arguments = {
+        "train-initial": [str(sample), str(tmp_path / "ws"), "--iterations", "1", "--resolution", "32"],
+        "render": [str(tmp_path / "ws"), "--turntable", "2", "-o", str(tmp_path / "turn.mp4")],
+    }[command]
+    result = CliRunner().invoke(app, [command, *arguments, "--device", "cuda"])
+    assert result.exit_code == 2
+    assert result.stderr.strip() == "error: --device cuda: no CUDA GPU is visible to torch; use --device cpu or auto"
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_unknown_device_is_one_line(tmp_path: Path):
+    result = CliRunner().invoke(app, ["visibility", str(tmp_path), "--device", "tpu"])
+    assert result.exit_code == 2
+    assert result.stderr.strip() == "error: --device tpu: give auto, cpu or cuda"

@@ -130,6 +130,11 @@ class Avatar:
         return self.params["means"].shape[0]
 
     @property
+    def device(self) -> torch.device:
+        """The device every parameter and `rest_joints` live on."""
+        return self.params["means"].device
+
+    @property
     def scales(self) -> torch.Tensor:
         """(N, 3) standard deviations, metres."""
         return torch.exp(self.params["log_scales"])
@@ -189,15 +194,17 @@ class Avatar:
 
         body_pose: (24, 3) SMPL axis-angle, joint 0 the global orientation; transl: (3,) metres;
         world_transform: optional (4, 4) rigid transform applied after posing (differentiable too).
-        Returns world-frame means (N, 3) and quats (N, 4) w x y z.
+        The pose tensors may live on any device; they are moved (differentiably) to the avatar's.
+        Returns world-frame means (N, 3) and quats (N, 4) w x y z, on the avatar's device.
         """
+        body_pose, transl = body_pose.to(self.device), transl.to(self.device)
         transforms = forward_kinematics(body_pose[None], self.rest_joints, transl[None])[0]
         if world_transform is not None:
-            transforms = world_transform @ transforms
+            transforms = world_transform.to(self.device) @ transforms
         return skin_gaussians(self.params["means"], self.params["quats"], self.skin_weights, transforms)
 
     def to(self, device: torch.device | str) -> Avatar:
-        """A copy on `device` (make optimizers after moving)."""
+        """A copy on `device` whose parameters are new leaf `torch.nn.Parameter`s (make optimizers after moving)."""
         moved = {name: param.detach().to(device) for name, param in self.params.items()}
         return Avatar(moved, self.rest_joints.to(device), self.sh_degree, self.active_sh_degree, self.body_model)
 
@@ -270,8 +277,8 @@ class Avatar:
         return cls(params, rest_joints, gaussians.sh_degree, active, body_model)
 
     def save(self, path: Path | str) -> None:
-        """Write the canonical avatar as a 3DGS PLY with the skinning extra, atomically."""
-        write_gaussians(path, self.to_gaussians())
+        """Write the canonical avatar as a 3DGS PLY with the skinning extra, atomically (from any device)."""
+        write_gaussians(path, self.to_gaussians().to("cpu"))
 
     @classmethod
     def load(cls, path: Path | str) -> Avatar:

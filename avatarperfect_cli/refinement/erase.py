@@ -20,11 +20,11 @@ SPLAT_VISIBILITY = 0.01
 
 
 def centres_in_region(avatar: Avatar, view: PoseFile, region: torch.Tensor) -> torch.Tensor:
-    """(N,) bool: Gaussians in front of the camera whose projected centre lies in a pixel of `region`
-    (H, W) bool, the pixel that contains it (pixel x covers [x, x + 1))."""
+    """(N,) bool on the avatar's device: Gaussians in front of the camera whose projected centre lies in a
+    pixel of `region` (H, W) bool, the pixel that contains it (pixel x covers [x, x + 1))."""
     with torch.no_grad():
         means, _ = avatar.pose(view.body_pose, view.transl)
-        camera = view.camera.to(dtype=means.dtype)
+        camera = view.camera.to(device=means.device, dtype=means.dtype)
         local = means @ camera.world_to_camera[:3, :3].T + camera.world_to_camera[:3, 3]
         depth = local[:, 2]
         in_front = depth > 1e-6
@@ -33,9 +33,9 @@ def centres_in_region(avatar: Avatar, view: PoseFile, region: torch.Tensor) -> t
     height, width = region.shape
     column, row = torch.floor(pixels[:, 0]), torch.floor(pixels[:, 1])
     on_image = in_front & (column >= 0) & (column < width) & (row >= 0) & (row < height)
-    selected = torch.zeros(len(avatar), dtype=torch.bool)
+    selected = torch.zeros(len(avatar), dtype=torch.bool, device=means.device)
     index = on_image.nonzero()[:, 0]
-    selected[index] = region[row[index].long(), column[index].long()]
+    selected[index] = region.to(means.device)[row[index].long(), column[index].long()]
     return selected
 
 

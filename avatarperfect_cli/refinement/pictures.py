@@ -45,7 +45,7 @@ def _panel_camera(points: torch.Tensor, direction: tuple[float, ...], up: tuple[
 def visibility_picture(avatar: Avatar, visibility: torch.Tensor, title: str) -> bytes:
     """PNG bytes: the canonical avatar (T-pose) from the front, both sides, the back and below, each
     Gaussian coloured by its accumulated visibility V (N,) on a logarithmic perceptual colour map
-    (dark: barely seen), with a colour bar."""
+    (dark: barely seen), with a colour bar. Rendered on the avatar's device; `visibility` on the CPU."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -59,13 +59,14 @@ def visibility_picture(avatar: Avatar, visibility: torch.Tensor, title: str) -> 
     norm = colors.LogNorm(vmin=low, vmax=high)
     colour_map = colormaps["viridis"]
     gaussian_colours = torch.from_numpy(colour_map(norm(visibility.clamp(low, high).numpy()))[:, :3]).float()
+    gaussian_colours = gaussian_colours.to(avatar.device)
     with torch.no_grad():
         means, quats = avatar.pose(torch.zeros(NUM_JOINTS, 3), torch.zeros(3))
         panels = []
         for _, direction, up in CANONICAL_VIEWS:
-            camera = _panel_camera(means, direction, up)
+            camera = _panel_camera(means.cpu(), direction, up)
             out = rasterization(means, quats, avatar.scales, avatar.opacities, gaussian_colours, camera, background=torch.ones(3))
-            panels.append(out.image.clamp(0, 1).numpy())
+            panels.append(out.image.clamp(0, 1).cpu().numpy())
     figure, axes = plt.subplots(1, len(panels) + 1, figsize=(3.2 * len(panels) + 0.8, 3.9),
                                 gridspec_kw={"width_ratios": [1] * len(panels) + [0.06]})  # fmt: skip
     for axis, panel, (name, _, _) in zip(axes, panels, CANONICAL_VIEWS):

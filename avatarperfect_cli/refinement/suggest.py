@@ -10,6 +10,10 @@ The camera keeps the dataset camera's intrinsics and up direction; azimuth 0 / e
 dataset camera's own viewing direction. Its distance is set from the posed body each step so that the
 whole body fits in `fill` of the image: the objective cannot be won by zooming in. The distance is
 part of the gradient (a pose that widens the body pushes the camera back and shows everything smaller).
+
+Devices: the search variables (latent, angles), the pose prior and the collision capsules stay on the
+CPU (a few dozen numbers); the decoded pose, the orbit and every render follow the avatar's device.
+Suggestions (pose files) are on the CPU.
 """
 
 from __future__ import annotations
@@ -87,7 +91,8 @@ class OrbitView:
 
     def __init__(self, avatar: Avatar, prior: PosePrior, reference: PoseFile, fill: float) -> None:
         self.avatar, self.prior, self.reference, self.fill = avatar, prior, reference, fill
-        rotation = reference.camera.world_to_camera[:3, :3].float()
+        self.device = avatar.device
+        rotation = reference.camera.world_to_camera[:3, :3].float().to(self.device)
         self.base_rotation = rotation
         self.right, self.up, self.forward = rotation[0], -rotation[1], rotation[2]
 
@@ -95,25 +100,28 @@ class OrbitView:
         return self.prior.decode(latent[None])[0]
 
     def orbit(self, azimuth: torch.Tensor, elevation: torch.Tensor) -> torch.Tensor:
-        """(3, 3) world rotation of the camera: tilt by `elevation` (positive: from above), then turn by
-        `azimuth` about the up axis."""
+        """(3, 3) world rotation of the camera on the avatar's device: tilt by `elevation` (positive: from
+        above), then turn by `azimuth` about the up axis (0-d angles on any device)."""
+        azimuth, elevation = azimuth.to(self.device), elevation.to(self.device)
         return rotation_about(self.up, azimuth) @ rotation_about(self.right, -elevation)
 
     def render(
         self, latent: torch.Tensor, azimuth: torch.Tensor, elevation: torch.Tensor, camera: Camera, colors: torch.Tensor
     ) -> tuple[torch.Tensor, PoseFile]:
-        """The (H, W, C) image of per-Gaussian `colors` (N, C) on black, and the pose file of the view.
+        """The (H, W, C) image of per-Gaussian `colors` (N, C, on the avatar's device) on black, on the
+        avatar's device, and the pose file of the view (on the CPU).
 
         Differentiable w.r.t. latent and the angles. `camera` gives the intrinsics and size.
         """
         body_pose = self.body_pose(latent)
         transl = self.reference.transl
-        center = self._body_center(body_pose.detach(), transl)
+        posed_pose, posed_transl = body_pose.to(self.device), transl.to(self.device)
+        center = self._body_center(posed_pose.detach(), posed_transl)
         orbit = self.orbit(azimuth, elevation)
-        world = torch.eye(4)
+        world = torch.eye(4, device=self.device)
         world[:3, :3] = orbit.T  # turning the body by orbit^T = turning the camera by orbit
         world[:3, 3] = center - orbit.T @ center
-        means, quats = self.avatar.pose(body_pose, transl, world)
+        means, quats = self.avatar.pose(posed_pose, posed_transl, world)
         distance = framing_distance(means - center, self.base_rotation, camera.K, camera.width, camera.height, self.fill)
         base = self._camera(center, float(distance.detach()), camera)
         # the camera sits at the detached distance; moving the body by the difference (zero in value) lets
@@ -123,10 +131,11 @@ class OrbitView:
         with torch.no_grad():
             view_rotation = self.base_rotation @ orbit.detach().T
             eye = center + orbit.detach() @ (base.center.float() - center)
-            view = torch.eye(4)
+            view = torch.eye(4, device=self.device)
             view[:3, :3] = view_rotation
             view[:3, 3] = -view_rotation @ eye
-        pose = PoseFile(body_pose.detach().clone(), transl.clone(), Camera(camera.K, view, camera.width, camera.height))
+        view_camera = Camera(camera.K, view.cpu(), camera.width, camera.height)
+        pose = PoseFile(body_pose.detach().clone(), transl.clone(), view_camera)
         return out.image, pose
 
     def _body_center(self, body_pose: torch.Tensor, transl: torch.Tensor) -> torch.Tensor:
@@ -137,10 +146,10 @@ class OrbitView:
 
     def _camera(self, center: torch.Tensor, distance: float, camera: Camera) -> Camera:
         eye = center - distance * self.forward
-        view = torch.eye(4)
+        view = torch.eye(4, device=self.device)
         view[:3, :3] = self.base_rotation
         view[:3, 3] = -self.base_rotation @ eye
-        return Camera(camera.K.float(), view, camera.width, camera.height)
+        return Camera(camera.K.float().to(self.device), view, camera.width, camera.height)
 
 
 def _angle_between_views(first: Camera, second: Camera) -> float:
@@ -172,7 +181,7 @@ def suggest_view(
     view = OrbitView(avatar, prior, reference, config.fill)
     full = reference.camera
     small = full.scaled(min(1.0, config.resolution / max(full.width, full.height)))
-    weights = suggestion_weights(visibility).float()[:, None]
+    weights = suggestion_weights(visibility).float()[:, None].to(avatar.device)
     scale = float(weights.abs().max()) or 1.0
     weights = weights / scale  # the search works on weights in [-1, 0]; `_finish` reports in V's units
 
@@ -238,7 +247,7 @@ def _optimise(view, capsules, objective, latent, azimuth, elevation, camera, con
         if float(penalty.detach()) == 0.0 and (best is None or current < best[0]):
             best = (current, latent.detach().clone(), float(angles[0].detach()), float(angles[1].detach()))
         optimizer.zero_grad(set_to_none=True)
-        loss = value / camera.width / camera.height + config.collision_weight * penalty
+        loss = value / camera.width / camera.height + config.collision_weight * penalty.to(value.device)
         loss.backward()
         optimizer.step()
         with torch.no_grad():

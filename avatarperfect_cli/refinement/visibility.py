@@ -22,7 +22,8 @@ DEFAULT_EDIT_WEIGHT = 0.01
 
 
 def gaussian_visibility(avatar: Avatar, view: PoseFile, world_transform: torch.Tensor | None = None) -> torch.Tensor:
-    """sigma(G, theta, tau): (N,) float64 visibility of every Gaussian in one posed view, pixels.
+    """sigma(G, theta, tau): (N,) float64 visibility of every Gaussian in one posed view, pixels, on the
+    avatar's device (the view may live on any device).
 
     world_transform: optional (4, 4) rigid transform applied to the posed avatar (see `Avatar.pose`).
     """
@@ -35,8 +36,9 @@ def gaussian_visibility(avatar: Avatar, view: PoseFile, world_transform: torch.T
 
 
 def mean_visibility(avatar: Avatar, views: Iterable[PoseFile]) -> tuple[torch.Tensor, int]:
-    """(N,) float64 mean of sigma over `views`, and how many views there were (zeros for none)."""
-    total = torch.zeros(len(avatar), dtype=torch.float64)
+    """(N,) float64 mean of sigma over `views` (on the avatar's device), and how many views there were
+    (zeros for none)."""
+    total = torch.zeros(len(avatar), dtype=torch.float64, device=avatar.device)
     count = 0
     for view in views:
         total += gaussian_visibility(avatar, view)

@@ -66,11 +66,12 @@ def look_at(eye: torch.Tensor, target: torch.Tensor, up: torch.Tensor) -> torch.
 
 
 def rotation_about(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
-    """(3, 3) rotation by `angle` (radians, a 0-d tensor, differentiable) about the unit `axis` (3,) (Rodrigues)."""
-    cross = torch.zeros(3, 3, dtype=axis.dtype)
+    """(3, 3) rotation by `angle` (radians, a 0-d tensor, differentiable) about the unit `axis` (3,) (Rodrigues),
+    on the axis's device."""
+    cross = torch.zeros(3, 3, dtype=axis.dtype, device=axis.device)
     cross[0, 1], cross[0, 2], cross[1, 2] = -axis[2], axis[1], -axis[0]
     cross = cross - cross.T
-    identity = torch.eye(3, dtype=axis.dtype)
+    identity = torch.eye(3, dtype=axis.dtype, device=axis.device)
     return identity + torch.sin(angle) * cross + (1 - torch.cos(angle)) * (cross @ cross)
 
 

@@ -18,6 +18,7 @@ from rich.table import Table
 from avatarperfect_cli.avatar.model import Avatar
 from avatarperfect_cli.avatar.rendering import render_avatar
 from avatarperfect_cli.datasets import FrameRange, load_people_snapshot
+from avatarperfect_cli.devices import CPU
 from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
 from avatarperfect_cli.io import atomic_write_text, write_image
 from avatarperfect_cli.io.atomic import atomic_folder
@@ -44,8 +45,11 @@ def evaluate(
     frames: FrameRange | None = None,
     progress: bool = True,
     poses: str = "auto",
+    device: torch.device = CPU,
 ) -> dict:
     """Evaluate avatar `iteration` (default: the latest) on `test_dataset`, at the training resolution.
+
+    The avatar is rendered on `device`; each render comes back to the CPU, where the metrics are computed.
 
     The test video's poses: "auto" (poses/anim_nerf_test.npz, else poses_optimized.npz, else poses.npz) or a
     pose file relative to the test dataset; their translations move by the workspace's transl_offset
@@ -56,13 +60,14 @@ def evaluate(
     returns the metrics.
     """
     with locked_workspace(workspace_root) as workspace:
-        return _evaluate(workspace, test_dataset, iteration, frames, progress, poses)
+        return _evaluate(workspace, test_dataset, iteration, frames, progress, poses, device)
 
 
 def _evaluate(
-    workspace: Workspace, test_dataset: Path, iteration: int | None, frames: FrameRange | None, progress: bool, poses: str
-) -> dict:
-    avatar = Avatar.load(workspace.require_avatar(iteration))
+    workspace: Workspace, test_dataset: Path, iteration: int | None, frames: FrameRange | None, progress: bool, poses: str,
+    device: torch.device,
+) -> dict:  # fmt: skip
+    avatar = Avatar.load(workspace.require_avatar(iteration)).to(device)
     out_dir = workspace.eval_dir(iteration) / Path(test_dataset).resolve().name
     check_writable_folder(out_dir.parent)
     trained = training_camera(workspace)
@@ -84,11 +89,11 @@ def _evaluate(
     with torch.no_grad():
         for t in track(range(len(test)), description="evaluating", console=Console(stderr=True), disable=not progress):
             out = render_avatar(avatar, test.body_pose[t], test.transl[t], test.camera, WHITE)
-            render = out.image.clamp(0, 1)
+            render, alpha = out.image.clamp(0, 1).cpu(), out.alpha.cpu()
             per_frame.append(
                 {
                     "frame": int(test.frame_ids[t]),
-                    "iou": metrics.iou(out.alpha > 0.5, test.masks[t]),
+                    "iou": metrics.iou(alpha > 0.5, test.masks[t]),
                     "psnr": metrics.psnr(render, test.images[t]),
                     "ssim": metrics.ssim(render, test.images[t]),
                 }

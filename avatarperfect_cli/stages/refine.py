@@ -21,6 +21,7 @@ import torch
 from rich.console import Console
 
 from avatarperfect_cli.avatar.model import Avatar
+from avatarperfect_cli.devices import CPU
 from avatarperfect_cli.errors import AvatarPerfectError
 from avatarperfect_cli.io.workspace import Workspace, locked_workspace
 from avatarperfect_cli.refinement.erase import centres_in_region, delete_gaussians
@@ -34,12 +35,14 @@ from avatarperfect_cli.training.trainer import TrainConfig, train, video_views
 class RefineSettings:
     """iterations: training steps (the paper: 500); edit_probability: share of steps that draw an edit (0.3);
     protect_seen: False deletes every Gaussian whose centre falls in a background stroke (the paper's
-    literal rule), True spares the ones the video saw at least averagely (see `seen_by_the_video`)."""
+    literal rule), True spares the ones the video saw at least averagely (see `seen_by_the_video`);
+    device: where the avatar is trained (the result is written from the CPU)."""
 
     iterations: int = 500
     edit_probability: float = 0.3
     seed: int = 0
     protect_seen: bool = True  # background strokes keep the Gaussians the video saw at least averagely
+    device: torch.device = CPU
 
 
 def delete_background(
@@ -47,11 +50,11 @@ def delete_background(
 ) -> tuple[Avatar, int]:
     """Delete the Gaussians whose centres fall in any of the edits' background regions, except the
     `protected` ones ((N,) bool, or None); returns (avatar, count)."""
-    delete = torch.zeros(len(avatar), dtype=torch.bool)
+    delete = torch.zeros(len(avatar), dtype=torch.bool, device=avatar.device)
     for edit in edits:
         delete |= centres_in_region(avatar, edit.pose, edit.background())
     if protected is not None:
-        delete &= ~protected
+        delete &= ~protected.to(avatar.device)
     return delete_gaussians(avatar, delete), int(delete.sum())
 
 
@@ -94,7 +97,7 @@ def refine(workspace_root: Path, settings: RefineSettings | None = None, progres
     console = Console(stderr=True, quiet=not progress)
     with locked_workspace(workspace_root) as workspace:
         start = time.perf_counter()
-        avatar = Avatar.load(workspace.require_avatar())
+        avatar = Avatar.load(workspace.require_avatar()).to(settings.device)
         edits = registered_edits(workspace)
         done = set(applied_edits(workspace))
         new_edits = [edit for edit in edits if edit.number not in done]

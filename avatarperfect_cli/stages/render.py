@@ -28,6 +28,7 @@ from rich.progress import track
 from avatarperfect_cli.avatar.model import Avatar
 from avatarperfect_cli.avatar.rendering import render_avatar
 from avatarperfect_cli.body import axis_angle_to_matrix
+from avatarperfect_cli.devices import CPU
 from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
 from avatarperfect_cli.gaussians import Gaussians
 from avatarperfect_cli.io import atomic_path, read_camera, read_gaussians, read_pose, write_image
@@ -56,17 +57,6 @@ def parse_background(text: str) -> torch.Tensor:
     if len(values) != 3 or not all(0.0 <= v <= 1.0 for v in values):
         raise AvatarPerfectError(f"background '{text}' is not white, black or R,G,B with values in 0..1")
     return torch.tensor(values)
-
-
-def resolve_device(name: str) -> torch.device:
-    """'auto' (CUDA when available), 'cpu' or 'cuda' -> a torch device."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name not in ("cpu", "cuda"):
-        raise AvatarPerfectError(f"device '{name}' is not auto, cpu or cuda")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise AvatarPerfectError("device 'cuda' was asked for but no CUDA GPU is available")
-    return torch.device(name)
 
 
 def render_gaussians(
@@ -106,9 +96,10 @@ def render_ply(
     output: Path,
     alpha_output: Path | None = None,
     background: str = "white",
-    device: str = "auto",
+    device: torch.device = CPU,
 ) -> None:
-    """Render a Gaussian PLY with a camera JSON to an RGB PNG and an alpha PNG (written together, atomically).
+    """Render a Gaussian PLY with a camera JSON on `device` to an RGB PNG and an alpha PNG (written together,
+    atomically).
 
     Both outputs are checked before any work; a warning goes to stderr when the camera sees none of the
     Gaussians.
@@ -117,10 +108,10 @@ def render_ply(
     alpha_output = alpha_output or default_alpha_path(output)
     check_writable_output(output)
     check_writable_output(alpha_output)
-    background_color, torch_device = parse_background(background), resolve_device(device)
+    background_color = parse_background(background)
     gaussians = read_gaussians(source)
     camera = read_camera(camera_path)
-    out = render_gaussians(gaussians, camera, background_color, torch_device)
+    out = render_gaussians(gaussians, camera, background_color, device)
     if _is_empty(out):
         _warn(f"{output}: the camera sees none of the Gaussians of {source}; the image is only background")
     write_image_pair(output, out.image.clamp(0, 1).cpu(), alpha_output, out.alpha.cpu())
@@ -271,8 +262,10 @@ def render_avatar_views(
     progress: bool = True,
     force: bool = False,
     up: str | None = None,
+    device: torch.device = CPU,
 ) -> None:
-    """Render a skinned avatar (workspace or avatar PLY) posed by a pose JSON, a motion file, or on a turntable.
+    """Render a skinned avatar (workspace or avatar PLY) on `device`, posed by a pose JSON, a motion file, or on
+    a turntable.
 
     pose:      one image (the pose JSON's own camera) to `output` (.png) and its alpha beside it
     motion:    one frame per motion pose, seen by `camera_path` or the workspace's training camera, placed
@@ -304,11 +297,12 @@ def render_avatar_views(
         camera = read_camera(camera_path)
     if pose is not None:
         pose_file = read_pose(pose)
+        avatar = avatar.to(device)
         with torch.no_grad():
             out = render_avatar(avatar, pose_file.body_pose, pose_file.transl, pose_file.camera, background_color)
         if _is_empty(out):
             _warn(f"{output}: the pose's camera sees none of the avatar; the image is only background")
-        write_image_pair(output, out.image.clamp(0, 1), default_alpha_path(output), out.alpha)
+        write_image_pair(output, out.image.clamp(0, 1).cpu(), default_alpha_path(output), out.alpha.cpu())
         return
     if camera is None:
         raise AvatarPerfectError(f"{source}: an avatar PLY needs --camera for --motion and --turntable")
@@ -325,10 +319,11 @@ def render_avatar_views(
         views = [(reference_body_pose, reference_transl, c) for c in orbit_cameras(camera, center, turntable)]
     empty = 0
     console = Console(stderr=True)
+    avatar = avatar.to(device)
     with frame_writer(output, camera.width, camera.height, fps) as write, torch.no_grad():
         for body_pose, translation, view_camera in track(views, "rendering", console=console, disable=not progress):
             out = render_avatar(avatar, body_pose, translation, view_camera, background_color)
             empty += _is_empty(out)
-            write(out.image)
+            write(out.image.cpu())
     if empty:
         _warn(f"{output}: {empty} of {len(views)} frames show none of the avatar (the camera looks away from it)")

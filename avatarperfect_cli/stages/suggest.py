@@ -22,6 +22,7 @@ from rich.progress import Progress
 
 from avatarperfect_cli.avatar.model import Avatar
 from avatarperfect_cli.avatar.rendering import render_avatar
+from avatarperfect_cli.devices import CPU
 from avatarperfect_cli.errors import AvatarPerfectError
 from avatarperfect_cli.io import atomic_write_text, read_pose, write_image, write_pose
 from avatarperfect_cli.io.atomic import atomic_folder
@@ -40,12 +41,14 @@ WHITE = torch.ones(3)
 
 @dataclass
 class SuggestSettings:
-    """What `suggest` needs besides the workspace: the search, the pose prior and V's edit weight."""
+    """What `suggest` needs besides the workspace: the search, the pose prior, V's edit weight and the
+    device the avatar is rendered on."""
 
     search: SuggestConfig = field(default_factory=SuggestConfig)
     pose_prior: str = "builtin"
     vposer_dir: Path | None = None
     edit_weight: float = DEFAULT_EDIT_WEIGHT
+    device: torch.device = CPU
 
 
 def suggest(workspace_root: Path, settings: SuggestSettings | None = None, progress: bool = True) -> Path:
@@ -56,11 +59,12 @@ def suggest(workspace_root: Path, settings: SuggestSettings | None = None, progr
     console = Console(stderr=True, quiet=not progress)
     with locked_workspace(workspace_root) as workspace:
         start = time.perf_counter()
-        avatar = Avatar.load(workspace.require_avatar())
+        stored = Avatar.load(workspace.require_avatar())
+        avatar = stored.to(settings.device)
         reference = reference_pose(workspace)
         prior = load_pose_prior(settings.pose_prior, reference.body_pose, settings.vposer_dir)
         record = current_visibility(workspace, avatar, settings.edit_weight, progress)
-        capsules = BodyCapsules.from_points(avatar.params["means"].detach(), avatar.skin_weights.detach(), avatar.rest_joints)
+        capsules = BodyCapsules.from_points(stored.params["means"].detach(), stored.skin_weights.detach(), stored.rest_joints)
         earlier = [read_pose(folder / "pose.json") for folder in workspace.numbered_folders(SUGGESTIONS)]
         search = settings.search
         total = search.starts * search.steps if search.body_pose != "random" else 0
@@ -97,11 +101,11 @@ def _write_suggestion(folder: Path, avatar: Avatar, visibility: torch.Tensor, su
     with torch.no_grad():
         out = render_avatar(avatar, pose.body_pose, pose.transl, pose.camera, WHITE)
         means, quats = avatar.pose(pose.body_pose, pose.transl)
-        barely = barely_seen(visibility).float()[:, None]
-        share = rasterization(means, quats, avatar.scales, avatar.opacities, barely, pose.camera).image[..., 0]
-    image = out.image.clamp(0, 1)
+        barely = barely_seen(visibility).float()[:, None].to(avatar.device)
+        share = rasterization(means, quats, avatar.scales, avatar.opacities, barely, pose.camera).image[..., 0].cpu()
+    image, alpha = out.image.clamp(0, 1).cpu(), out.alpha.cpu()
     write_image(folder / "suggested.png", image)
-    write_image(folder / "suggested_alpha.png", out.alpha[..., None])
+    write_image(folder / "suggested_alpha.png", alpha[..., None])
     write_pose(folder / "pose.json", pose)
-    dominated = (share > 0.5 * out.alpha) & (out.alpha > 0.1)
+    dominated = (share > 0.5 * alpha) & (alpha > 0.1)
     write_image(folder / "guide.png", guide_image(image, dominated))

@@ -13,6 +13,7 @@ from rich.console import Console
 from avatarperfect_cli.avatar.model import Avatar
 from avatarperfect_cli.body import BodyTemplate, load_body_template
 from avatarperfect_cli.datasets import FrameRange, VideoDataset, load_people_snapshot, read_dataset_camera
+from avatarperfect_cli.devices import CPU
 from avatarperfect_cli.errors import AvatarPerfectError
 from avatarperfect_cli.io.atomic import atomic_path
 from avatarperfect_cli.io.camera_json import camera_to_json
@@ -108,7 +109,8 @@ class BodySettings:
 
 @dataclass
 class InitialFit:
-    """Everything `train-initial` needs besides the paths."""
+    """Everything `train-initial` needs besides the paths; `device` is where the avatar is trained (the
+    translation-offset search and the written results stay on the CPU)."""
 
     video: VideoSettings = field(default_factory=VideoSettings)
     body: BodySettings = field(default_factory=BodySettings)
@@ -116,6 +118,7 @@ class InitialFit:
     sh_degree: int = 1
     seed: int = 0
     refine_poses: bool = False  # per-frame pose refinement, for real videos with approximate poses
+    device: torch.device = CPU
 
 
 def train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool = False, progress: bool = True) -> Path:
@@ -161,11 +164,11 @@ def _train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool,
     template, body_model = fit.body.template(video)
     offset = _transl_offset(dataset, fit, video, template, body_model, console)
     video.transl = video.transl + offset
-    avatar = Avatar.from_template(template, sh_degree=fit.sh_degree, body_model=body_model)
+    avatar = Avatar.from_template(template, sh_degree=fit.sh_degree, body_model=body_model).to(fit.device)
     console.print(f"fitting {len(avatar):,} Gaussians to {len(video)} frames of {video.camera.width}x{video.camera.height}")
     config = TrainConfig(iterations=fit.iterations, seed=fit.seed)
     config.learning_rates.total_steps = fit.iterations
-    refiner = PoseRefiner(len(video)) if fit.refine_poses else None
+    refiner = PoseRefiner(len(video), device=fit.device) if fit.refine_poses else None
     start = time.perf_counter()
     train(avatar, video_views(video), config=config, progress=progress, pose_refiner=refiner)
     seconds = time.perf_counter() - start

@@ -21,6 +21,7 @@ from rich.console import Console
 from rich.progress import track
 
 from avatarperfect_cli.avatar.model import Avatar
+from avatarperfect_cli.devices import CPU
 from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
 from avatarperfect_cli.io import atomic_write_bytes
 from avatarperfect_cli.io.atomic import updated_folder
@@ -34,7 +35,7 @@ VISIBILITY = "visibility"
 
 @dataclass
 class VisibilityRecord:
-    """The content of ws/visibility/NNN.npz (see the module doc)."""
+    """The content of ws/visibility/NNN.npz (see the module doc); `visibility` (N,) float64 on the CPU."""
 
     visibility: torch.Tensor
     frames: int
@@ -68,20 +69,21 @@ def read_visibility(path: Path, iteration: int) -> VisibilityRecord:
 
 
 def compute_visibility(workspace: Workspace, avatar: Avatar, edit_weight: float, progress: bool) -> VisibilityRecord:
-    """V of `avatar` over the workspace's video and registered edits; writes the .npz and the picture."""
+    """V of `avatar` over the workspace's video and registered edits, rendered on the avatar's device;
+    writes the .npz and the picture."""
     if not 0.0 <= edit_weight <= 1.0:
         raise AvatarPerfectError(f"--edit-weight must be in [0, 1], got {edit_weight}")
     views = video_poses(workspace)
     edits = registered_edits(workspace)
     console = Console(stderr=True, quiet=not progress)
     start = time.perf_counter()
-    total = torch.zeros(len(avatar), dtype=torch.float64)
+    total = torch.zeros(len(avatar), dtype=torch.float64, device=avatar.device)
     for view in track(views, description="visibility", console=console, disable=not progress):
         total += gaussian_visibility(avatar, view)
     edit_mean = None
     if edits:
         edit_mean = sum(gaussian_visibility(avatar, edit.pose) for edit in edits) / len(edits)
-    visibility = combine_visibility(total / len(views), edit_mean, edit_weight)
+    visibility = combine_visibility(total / len(views), edit_mean, edit_weight).cpu()
     record = VisibilityRecord(visibility, len(views), [edit.folder.name for edit in edits], edit_weight, workspace.iteration)
     path = visibility_path(workspace)
     buffer = io.BytesIO()
@@ -111,9 +113,12 @@ def current_visibility(workspace: Workspace, avatar: Avatar, edit_weight: float,
     return compute_visibility(workspace, avatar, edit_weight, progress)
 
 
-def visibility(workspace_root: Path, edit_weight: float = DEFAULT_EDIT_WEIGHT, progress: bool = True) -> Path:
-    """Compute V for the workspace's current avatar and write ws/visibility/NNN.npz (+ .png); returns its path."""
+def visibility(
+    workspace_root: Path, edit_weight: float = DEFAULT_EDIT_WEIGHT, progress: bool = True, device: torch.device = CPU
+) -> Path:
+    """Compute V for the workspace's current avatar, rendering on `device`, and write ws/visibility/NNN.npz
+    (+ .png); returns its path."""
     with locked_workspace(workspace_root) as workspace:
-        avatar = Avatar.load(workspace.require_avatar())
+        avatar = Avatar.load(workspace.require_avatar()).to(device)
         compute_visibility(workspace, avatar, edit_weight, progress)
         return visibility_path(workspace)

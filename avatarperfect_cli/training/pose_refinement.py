@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import torch
 
+from avatarperfect_cli.devices import CPU
 from avatarperfect_cli.training.optim import ADAM_EPS
 
 
@@ -25,10 +26,12 @@ class PoseRefinementConfig:
 class PoseRefiner:
     """Learnable pose and translation offsets of `frames` video frames."""
 
-    def __init__(self, frames: int, config: PoseRefinementConfig | None = None) -> None:
+    def __init__(
+        self, frames: int, config: PoseRefinementConfig | None = None, device: torch.device = CPU
+    ) -> None:
         self.config = config or PoseRefinementConfig()
-        self.pose_offsets = torch.nn.Parameter(torch.zeros(frames, 24, 3))
-        self.transl_offsets = torch.nn.Parameter(torch.zeros(frames, 3))
+        self.pose_offsets = torch.nn.Parameter(torch.zeros(frames, 24, 3, device=device))
+        self.transl_offsets = torch.nn.Parameter(torch.zeros(frames, 3, device=device))
         self.optimizer = torch.optim.Adam([self.pose_offsets, self.transl_offsets], lr=self.config.learning_rate, eps=ADAM_EPS)
 
     def pose(self, frame: int, body_pose: torch.Tensor, transl: torch.Tensor, step: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -44,5 +47,6 @@ class PoseRefiner:
         self.optimizer.zero_grad(set_to_none=True)
 
     def refined(self, body_pose: torch.Tensor, transl: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """All frames' refined poses (T, 24, 3) and translations (T, 3) given the original ones."""
-        return (body_pose + self.pose_offsets).detach(), (transl + self.transl_offsets).detach()
+        """All frames' refined poses (T, 24, 3) and translations (T, 3) given the original ones, on their device."""
+        pose_offsets = self.pose_offsets.detach().to(body_pose.device)
+        return body_pose + pose_offsets, transl + self.transl_offsets.detach().to(transl.device)

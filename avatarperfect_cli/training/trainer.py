@@ -4,6 +4,9 @@ Each step draws a view (an edit with probability `edit_probability`, else a vide
 avatar, renders it over a random background colour, and takes an Adam step on L1 + λ(1 − SSIM) over
 the subject's bounding box (edits: masked by the edit mask M_k, paper §6.3). Densification lives in
 the strategy object's hooks, so the loop holds no bookkeeping of its own.
+
+Training runs on the avatar's device (`Avatar.to`): the views are moved there once, the background
+colours are drawn by the CPU generator (the same colours on every device) and moved there.
 """
 
 from __future__ import annotations
@@ -43,6 +46,14 @@ class TrainingView:
     camera: Camera
     loss_mask: torch.Tensor | None = None
 
+    def to(self, device: torch.device) -> TrainingView:
+        """The view with every tensor (the camera's too) on `device`."""
+        loss_mask = None if self.loss_mask is None else self.loss_mask.to(device)
+        return TrainingView(
+            self.image.to(device), self.foreground.to(device), self.body_pose.to(device), self.transl.to(device),
+            self.camera.to(device=device), loss_mask,
+        )  # fmt: skip
+
 
 @dataclass
 class TrainConfig:
@@ -78,14 +89,18 @@ def train(
     progress: bool = True,
     pose_refiner: PoseRefiner | None = None,
 ) -> Avatar:
-    """Optimise `avatar` in place on the video frames and edits; returns it.
+    """Optimise `avatar` in place on the video frames and edits, on the avatar's device; returns it.
 
     pose_refiner: optional per-frame pose offsets of the video (one per entry of `video`), optimised
-    along with the avatar; read the result with `pose_refiner.refined(...)`.
+    along with the avatar; read the result with `pose_refiner.refined(...)`. It must live on the
+    avatar's device.
     """
     config = config or TrainConfig()
     if not video:
         raise ValueError("training needs at least one video frame")
+    device = avatar.device
+    video = [view.to(device) for view in video]
+    edits = [view.to(device) for view in edits]
     torch.manual_seed(config.seed)
     chooser = random.Random(config.seed)
     rates = config.learning_rates
@@ -109,7 +124,7 @@ def train(
                 body_pose, transl = view.body_pose, view.transl
                 if pose_refiner is not None:
                     body_pose, transl = pose_refiner.pose(index, body_pose, transl, step)
-            background = torch.rand(3)
+            background = torch.rand(3).to(device)
             target = torch.where(view.foreground[..., None], view.image, background)
             out = render_avatar(avatar, body_pose, transl, view.camera, background)
             mask = None if view.loss_mask is None else view.loss_mask[rows, cols]

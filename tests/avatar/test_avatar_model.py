@@ -115,6 +115,23 @@ def test_ply_round_trip(tmp_path) -> None:
     assert_same_avatar(Avatar.load(path), avatar)
 
 
+def test_to_gives_an_independent_copy_with_leaf_parameters() -> None:
+    avatar = Avatar.from_template(octahedron_template(), sh_degree=1, body_model={"name": "anny"})
+    avatar.active_sh_degree = 1
+    moved = avatar.to("cpu")
+    assert moved.device == torch.device("cpu") and moved.rest_joints.device == torch.device("cpu")
+    assert_same_avatar(moved, avatar)
+    for name, param in moved.params.items():
+        assert isinstance(param, torch.nn.Parameter) and param.is_leaf and param.requires_grad
+        assert param.data_ptr() != avatar.params[name].data_ptr()
+    body_pose, transl = 0.3 * torch.randn(24, 3), torch.randn(3)
+    for posed, reference in zip(moved.pose(body_pose, transl), avatar.pose(body_pose, transl)):
+        assert torch.equal(posed, reference)
+    with torch.no_grad():
+        moved.params["means"].add_(1.0)
+    assert not torch.equal(moved.params["means"], avatar.params["means"])
+
+
 def test_plain_3dgs_ply_is_a_one_line_input_error(tmp_path) -> None:
     plain = Avatar.from_template(octahedron_template()).to_gaussians()
     path = tmp_path / "plain.ply"

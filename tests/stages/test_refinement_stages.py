@@ -55,6 +55,36 @@ def workspace(trained: Path, tmp_path: Path) -> Path:
     return root
 
 
+@pytest.mark.parametrize(
+    "command", [["refine"], ["visibility"], ["suggest", *FAST_SUGGEST], ["evaluate", "--test", SAMPLE / "test"]]
+)
+def test_device_cuda_without_a_gpu_is_one_line_and_changes_nothing(workspace: Path, monkeypatch, command: list):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    before = snapshot(workspace)
+    message = one_line_error(invoke(command[0], workspace, *command[1:], "--device", "cuda"))
+    assert message == "error: --device cuda: no CUDA GPU is visible to torch; use --device cpu or auto"
+    assert snapshot(workspace) == before
+
+
+def test_device_cpu_trains_the_same_avatar_as_the_default(trained: Path, workspace: Path, tmp_path: Path, monkeypatch):
+    """--device cpu and the default (auto, the CPU without a GPU) give byte-identical avatars: train-initial
+    (against the fixture's default run) and a refine with an edit (background deletion, edit views)."""
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    explicit = tmp_path / "explicit"
+    assert invoke("train-initial", SAMPLE / "train", explicit, *TRAIN_ARGS, "--device", "cpu").exit_code == 0
+    assert (explicit / "avatar" / "000.ply").read_bytes() == (trained / "avatar" / "000.ply").read_bytes()
+    assert invoke("suggest", workspace, *FAST_SUGGEST).exit_code == 0
+    edited, _ = _paint_background_square(workspace, tmp_path)
+    assert invoke("apply-edit", workspace, edited).exit_code == 0
+    other = tmp_path / "other"
+    shutil.copytree(workspace, other)
+    assert invoke("refine", workspace, "--iterations", "8").exit_code == 0
+    assert invoke("refine", other, "--iterations", "8", "--device", "cpu").exit_code == 0
+    refined = (workspace / "avatar" / "001.ply").read_bytes()
+    assert refined == (other / "avatar" / "001.ply").read_bytes()
+    assert refined != (workspace / "avatar" / "000.ply").read_bytes()
+
+
 def test_visibility_writes_record_and_picture(workspace: Path):
     result = invoke("visibility", workspace)
     assert result.exit_code == 0, result.output

@@ -117,3 +117,27 @@ def test_subject_bbox() -> None:
     corner[2, 115] = 1.0
     assert subject_bbox(corner, margin=20) == (slice(0, 23), slice(95, 120))
     assert subject_bbox(torch.zeros(5, 7), margin=3) == (slice(0, 5), slice(0, 7))
+
+
+@pytest.mark.parametrize("padding,border", [("same", 0), ("valid", 5)])
+@pytest.mark.parametrize("dtype, tolerance", [(torch.float32, 1e-5), (torch.float64, 1e-12)])
+def test_torch_ssim_matches_the_numba_kernel_forward_and_backward(
+    padding: str, border: int, dtype: torch.dtype, tolerance: float
+) -> None:
+    """The conv2d SSIM that non-CPU tensors take (CUDA training and evaluation) against the numba kernel the
+    CPU takes: the value and the gradients of both images."""
+    x, y = image_pair(45, 38, 3, dtype=dtype, seed=2)
+    upstream = 0.7  # a non-unit incoming gradient, as in the loss 0.1 * (1 - SSIM)
+    results = []
+    for function in (lambda p, t: ssim(p, t, padding), lambda p, t: _ssim_conv(p, t, border)):
+        pred, target = x.clone().requires_grad_(), y.clone().requires_grad_()
+        value = function(pred, target)
+        (value * upstream).backward()
+        results.append((value.detach(), pred.grad, target.grad))
+    (numba_value, numba_pred, numba_target), (conv_value, conv_pred, conv_target) = results
+    assert 0.2 < float(numba_value) < 0.95
+    torch.testing.assert_close(conv_value, numba_value, rtol=0, atol=tolerance)
+    scale = float(numba_pred.abs().max())
+    assert scale > 0
+    torch.testing.assert_close(conv_pred, numba_pred, rtol=0, atol=tolerance * scale)
+    torch.testing.assert_close(conv_target, numba_target, rtol=0, atol=tolerance * scale)
