@@ -1,3 +1,40 @@
-from avatarperfect_cli.cli import app
+"""Entry point of `avatarperfect` and `python -m avatarperfect_cli`.
 
-app(prog_name="avatarperfect")
+A command that writes a workspace another stage holds is refused before the CLI's heavy imports (torch
+and numba take seconds to load), with the line the lock itself gives; the lock stays the authority.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+# commands that take the workspace lock; any of their positional arguments may name the workspace
+LOCKING_COMMANDS = frozenset({"train-initial", "visibility", "suggest", "apply-edit", "refine", "evaluate", "simulate-user", "report"})
+
+
+def main() -> None:
+    refuse_busy_workspace(sys.argv[1:])
+    from avatarperfect_cli.cli import app
+
+    app(prog_name="avatarperfect")
+
+
+def refuse_busy_workspace(argv: list[str]) -> None:
+    """Exit with status 2 and one line when `argv` runs a locking command on a busy workspace."""
+    if not argv or argv[0] not in LOCKING_COMMANDS:
+        return
+    from avatarperfect_cli.errors import AvatarPerfectError
+    from avatarperfect_cli.io.workspace import refuse_if_busy
+
+    try:
+        for argument in argv[1:]:
+            if not argument.startswith("-"):
+                refuse_if_busy(Path(argument))
+    except AvatarPerfectError as error:
+        print(f"error: {error}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
+if __name__ == "__main__":
+    main()

@@ -168,6 +168,29 @@ def workspace_lock(root: Path) -> Iterator[None]:
         os.close(descriptor)  # releases the lock
 
 
+def refuse_if_busy(root: Path) -> None:
+    """Raise the lock's one-line refusal when another stage holds the workspace at `root`; else return at
+    once. A probe, not a lock: it imports nothing heavy, so the CLI calls it before loading torch."""
+    try:
+        descriptor = os.open(lock_path(root), os.O_RDONLY)
+    except OSError:
+        return  # no lock file: nobody holds it
+    try:
+        fcntl.flock(descriptor, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        raise _busy(root, _holder(descriptor)) from None
+    finally:
+        os.close(descriptor)
+
+
+def _holder(descriptor: int) -> str:
+    return os.pread(descriptor, 32, 0).decode(errors="replace").strip() or "?"
+
+
+def _busy(root: Path, holder: str) -> AvatarPerfectError:
+    return AvatarPerfectError(f"{root}: another avatarperfect stage (pid {holder}) is using this workspace; wait for it to finish")
+
+
 def _acquire(path: Path, root: Path) -> int:
     """A descriptor of `path` holding its exclusive lock (see `workspace_lock`)."""
     while True:
@@ -175,11 +198,9 @@ def _acquire(path: Path, root: Path) -> int:
         try:
             fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            holder = os.pread(descriptor, 32, 0).decode(errors="replace").strip() or "?"
+            holder = _holder(descriptor)
             os.close(descriptor)
-            raise AvatarPerfectError(
-                f"{root}: another avatarperfect stage (pid {holder}) is using this workspace; wait for it to finish"
-            ) from None
+            raise _busy(root, holder) from None
         try:
             if os.stat(path).st_ino == os.fstat(descriptor).st_ino:
                 return descriptor

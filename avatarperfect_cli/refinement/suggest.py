@@ -209,6 +209,9 @@ def suggest_view(
         azimuth, elevation = random_camera()
         return _finish(view, latent, azimuth, elevation, full, objective, scale)
 
+    def separated(pose: PoseFile) -> bool:
+        return all(_angle_between_views(pose.camera, e.camera) >= config.min_separation_deg for e in earlier)
+
     candidates = []
     with torch.no_grad():
         for index in range(config.candidates):
@@ -216,23 +219,23 @@ def suggest_view(
             optimise_pose = config.body_pose == "optimise" and index % 2 == 1
             latent = random_natural_latent() if optimise_pose else canonical.clone()
             value, pose = objective(latent, torch.tensor(azimuth), torch.tensor(elevation), small)
-            separated = all(_angle_between_views(pose.camera, e.camera) >= config.min_separation_deg for e in earlier)
-            candidates.append((not separated, float(value), latent, azimuth, elevation))
+            candidates.append((not separated(pose), float(value), latent, azimuth, elevation))
     candidates.sort(key=lambda c: (c[0], c[1]))
 
     best: tuple[float, torch.Tensor, float, float] | None = None
-    for _, start_value, latent, azimuth, elevation in candidates[: config.starts]:
-        result = _optimise(view, capsules, objective, latent, azimuth, elevation, small, config, max_elevation, on_step)
-        result = result or (start_value, latent, azimuth, elevation)
+    for too_close, start_value, latent, azimuth, elevation in candidates[: config.starts]:
+        result = _optimise(view, capsules, objective, separated, latent, azimuth, elevation, small, config, max_elevation, on_step)
+        result = result or (math.inf if too_close else start_value, latent, azimuth, elevation)
         if best is None or result[0] < best[0]:
             best = result
     assert best is not None
     return _finish(view, best[1], best[2], best[3], full, objective, scale)
 
 
-def _optimise(view, capsules, objective, latent, azimuth, elevation, camera, config, max_elevation, on_step):
-    """Adam on (z, azimuth, elevation) from one start; the best collision-free iterate
-    (objective, latent, azimuth, elevation), or None when none was collision-free."""
+def _optimise(view, capsules, objective, separated, latent, azimuth, elevation, camera, config, max_elevation, on_step):
+    """Adam on (z, azimuth, elevation) from one start; the best iterate that is collision-free and looks from
+    at least `min_separation_deg` away from earlier suggestions (`separated(pose)`), as (objective, latent,
+    azimuth, elevation), or None when there was none."""
     latent = latent.clone().requires_grad_(config.body_pose == "optimise")
     angles = torch.tensor([azimuth, elevation], requires_grad=True)
     groups = [{"params": [angles], "lr": config.angle_learning_rate}]
@@ -241,10 +244,10 @@ def _optimise(view, capsules, objective, latent, azimuth, elevation, camera, con
     optimizer = torch.optim.Adam(groups)
     best = None
     for _ in range(config.steps):
-        value, _ = objective(latent, angles[0], angles[1], camera)
+        value, pose = objective(latent, angles[0], angles[1], camera)
         penalty = capsules.penetration(view.body_pose(latent)[None])[0]
         current = float(value.detach())
-        if float(penalty.detach()) == 0.0 and (best is None or current < best[0]):
+        if float(penalty.detach()) == 0.0 and (best is None or current < best[0]) and separated(pose):
             best = (current, latent.detach().clone(), float(angles[0].detach()), float(angles[1].detach()))
         optimizer.zero_grad(set_to_none=True)
         loss = value / camera.width / camera.height + config.collision_weight * penalty.to(value.device)

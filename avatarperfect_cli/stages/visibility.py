@@ -2,6 +2,8 @@
 
 Writes ws/visibility/NNN.npz (NNN = avatar iteration) holding
     visibility  (N,) float64 V, pixels per view
+    video       (N,) float64 the video term alone (the mean over the frames): when only the registered
+                edits changed, V is brought up to date by rendering the edit views alone
     mean        V's mean
     frames      video frames accumulated;  edits: the edit folders accumulated (names)
     edit_weight w;  iteration: the avatar iteration;  gaussians: N
@@ -35,9 +37,11 @@ VISIBILITY = "visibility"
 
 @dataclass
 class VisibilityRecord:
-    """The content of ws/visibility/NNN.npz (see the module doc); `visibility` (N,) float64 on the CPU."""
+    """The content of ws/visibility/NNN.npz (see the module doc); `visibility` and `video` (N,) float64 on
+    the CPU (`video` None in files written before it was stored)."""
 
     visibility: torch.Tensor
+    video: torch.Tensor | None
     frames: int
     edits: list[str]
     edit_weight: float
@@ -55,40 +59,48 @@ def read_visibility(path: Path, iteration: int) -> VisibilityRecord:
     """Read a visibility file; one line when it is unreadable or belongs to another avatar iteration."""
     try:
         with np.load(path) as data:
+            video = torch.from_numpy(data["video"].astype(np.float64)) if "video" in data else None
             record = VisibilityRecord(
-                torch.from_numpy(data["visibility"].astype(np.float64)), int(data["frames"]),
+                torch.from_numpy(data["visibility"].astype(np.float64)), video, int(data["frames"]),
                 [str(name) for name in data["edits"]], float(data["edit_weight"]), int(data["iteration"]),
             )  # fmt: skip
     except (OSError, KeyError, ValueError, TypeError) as error:
         raise InputFileError(path, f"not a visibility file ({error}); delete it and run 'avatarperfect visibility'") from None
     if record.iteration != iteration:
         raise InputFileError(path, f"belongs to avatar iteration {record.iteration}, not {iteration}; delete it")
-    if record.visibility.ndim != 1 or not torch.isfinite(record.visibility).all():
-        raise InputFileError(path, "visibility is not a finite (N,) array; delete it")
+    for values in (record.visibility, record.video):
+        if values is not None and (values.shape != record.visibility.shape or values.ndim != 1 or not torch.isfinite(values).all()):
+            raise InputFileError(path, "visibility is not a finite (N,) array; delete it")
     return record
 
 
-def compute_visibility(workspace: Workspace, avatar: Avatar, edit_weight: float, progress: bool) -> VisibilityRecord:
+def compute_visibility(
+    workspace: Workspace, avatar: Avatar, edit_weight: float, progress: bool, video: torch.Tensor | None = None
+) -> VisibilityRecord:
     """V of `avatar` over the workspace's video and registered edits, rendered on the avatar's device;
-    writes the .npz and the picture."""
+    writes the .npz and the picture. video: the (N,) video term of this avatar when already known (then
+    only the edit views are rendered)."""
     if not 0.0 <= edit_weight <= 1.0:
         raise AvatarPerfectError(f"--edit-weight must be in [0, 1], got {edit_weight}")
     views = video_poses(workspace)
     edits = registered_edits(workspace)
     console = Console(stderr=True, quiet=not progress)
     start = time.perf_counter()
-    total = torch.zeros(len(avatar), dtype=torch.float64, device=avatar.device)
-    for view in track(views, description="visibility", console=console, disable=not progress):
-        total += gaussian_visibility(avatar, view)
+    if video is None:
+        total = torch.zeros(len(avatar), dtype=torch.float64, device=avatar.device)
+        for view in track(views, description="visibility", console=console, disable=not progress):
+            total += gaussian_visibility(avatar, view)
+        video = (total / len(views)).cpu()
     edit_mean = None
     if edits:
-        edit_mean = sum(gaussian_visibility(avatar, edit.pose) for edit in edits) / len(edits)
-    visibility = combine_visibility(total / len(views), edit_mean, edit_weight).cpu()
-    record = VisibilityRecord(visibility, len(views), [edit.folder.name for edit in edits], edit_weight, workspace.iteration)
+        edit_mean = (sum(gaussian_visibility(avatar, edit.pose) for edit in edits) / len(edits)).cpu()
+    visibility = combine_visibility(video, edit_mean, edit_weight)
+    record = VisibilityRecord(visibility, video, len(views), [edit.folder.name for edit in edits], edit_weight, workspace.iteration)
     path = visibility_path(workspace)
     buffer = io.BytesIO()
     np.savez(
-        buffer, visibility=visibility.numpy(), mean=float(visibility.mean()), frames=len(views), edits=np.array(record.edits, dtype=str),
+        buffer, visibility=visibility.numpy(), video=video.numpy(), mean=float(visibility.mean()), frames=len(views),
+        edits=np.array(record.edits, dtype=str),
         edit_weight=edit_weight, iteration=workspace.iteration, gaussians=len(avatar),
     )  # fmt: skip
     title = f"avatar {workspace.iteration:03d}: visibility over {len(views)} frames and {len(edits)} edits"
@@ -101,7 +113,8 @@ def compute_visibility(workspace: Workspace, avatar: Avatar, edit_weight: float,
 
 
 def current_visibility(workspace: Workspace, avatar: Avatar, edit_weight: float, progress: bool) -> VisibilityRecord:
-    """The stored V of the current iteration if it is up to date (same edits and weight), else computed anew."""
+    """The stored V of the current iteration if it is up to date (same edits and weight), else computed anew
+    (only the edit term when the stored record holds the video term of the same frames)."""
     path = visibility_path(workspace)
     if path.is_file():
         record = read_visibility(path, workspace.iteration)
@@ -110,6 +123,8 @@ def current_visibility(workspace: Workspace, avatar: Avatar, edit_weight: float,
             return record
         if len(record.visibility) != len(avatar):
             raise InputFileError(path, f"holds {len(record.visibility)} values for {len(avatar)} Gaussians; delete it")
+        if record.video is not None and record.frames == len(video_poses(workspace)):
+            return compute_visibility(workspace, avatar, edit_weight, progress, video=record.video)
     return compute_visibility(workspace, avatar, edit_weight, progress)
 
 

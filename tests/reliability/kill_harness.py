@@ -14,6 +14,8 @@ state and times the kills. What a kill must leave (`Harness.check`):
   commit, and the workspace either byte-identical to before ("old") or completely the new state ("new": the
   reference's files, the ones the reference left alone byte-identical, the manifest loading, every committed
   avatar loading, the current one rendering with `render --pose`, every registered edit complete).
+  A stage that first brings derived data up to date in a commit of its own (refine refreshes the visibility
+  record) may also leave the old state with that folder refreshed (`Stage.refreshes`); it counts as old.
 Anything else is "lost".
 
 Kill moments, one phase drawn per kill:
@@ -50,7 +52,7 @@ from avatarperfect_cli.cli import app
 from avatarperfect_cli.io import read_image, write_image, write_pose
 from avatarperfect_cli.io.atomic import SAVE_DELAY_VARIABLE
 from avatarperfect_cli.io.workspace import lock_path, open_workspace
-from avatarperfect_cli.stages.workspace_data import EDITS, SUGGESTIONS, latest_suggestion, reference_pose
+from avatarperfect_cli.stages.workspace_data import EDITS, latest_suggestion, reference_pose
 
 SAMPLE = Path(__file__).resolve().parents[2] / "examples" / "sample"
 TRAIN_ARGS = ["--iterations", "10", "--resolution", "64", "--frames", "0:59:12"]
@@ -59,6 +61,8 @@ SAVE_DELAY = 0.25  # seconds the test hook sleeps before each final rename
 SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGKILL)
 PHASES = {"startup": 1, "run": 5, "save": 4}  # relative weights
 POLL_S = 0.005
+CALIBRATE_FROM = 5  # kills per stage from which an uninterrupted process run times them
+IGNORED_AFTER_S = 1.0  # a process that exits 0 this long after an early signal ignored it
 EDIT_FILES = {"target.png", "mask.png", "background.png", "pose.json", "edit.json"}  # and edited.<suffix>
 WS = "ws"  # the workspace's name inside its private folder ("box"), which holds nothing else
 
@@ -148,7 +152,8 @@ STAGES_BY_NAME = {stage.name: stage for stage in STAGES}
 @dataclass
 class Outcome:
     """One kill: the signal, the phase and the moment (seconds after the start; None: the stage finished before
-    its chosen moment), the exit status, the state left ("old", "new" or "lost") and what was wrong."""
+    its chosen moment), whether the lock file had appeared by then, the exit status, the state left ("old",
+    "new" or "lost"), when the process ended (seconds after the start) and what was wrong."""
 
     stage: str
     signal: str
@@ -157,6 +162,7 @@ class Outcome:
     lock_seen: bool
     exit_status: int
     state: str
+    ended: float = 0.0
     problems: list[str] = field(default_factory=list)
     traceback: bool = False
     stderr_tail: str = ""
@@ -211,6 +217,26 @@ class Reference:
     seconds: float
 
 
+@dataclass
+class Watch:
+    """What the harness saw of one process, in seconds after its start: when the lock file appeared, when the
+    signal was sent (None: never), when it ended, and the hidden temporaries and staging folders (saves)."""
+
+    lock_at: float | None = None
+    moment: float | None = None
+    ended: float = 0.0
+    saves: set[str] = field(default_factory=set)
+
+
+@dataclass
+class Timing:
+    """How an uninterrupted run of a stage as a process goes: seconds from the lock file appearing to the exit,
+    and the saves it made (hidden temporaries and staging folders seen)."""
+
+    seconds: float
+    saves: int
+
+
 @contextmanager
 def save_delay(seconds: float) -> Iterator[None]:
     """Set the test hook's delay for in-process runs."""
@@ -234,6 +260,7 @@ class Harness:
         self.references: dict[str, Reference] = {}
         self.rendered: set[str] = set()  # avatar hashes already rendered by `render --pose`
         self.startup_seconds: list[float] = []  # time from the start to the lock file, per run
+        self.timings: dict[str, Timing] = {}
 
     def reference(self, name: str) -> Reference:
         if name not in self.references:
@@ -263,9 +290,13 @@ class Harness:
 
     def kill_stage(self, name: str, kills: int, seed: int) -> list[Outcome]:
         """`kills` kills of stage `name`: signals in turn (starting at the stage's position in STAGES, so one
-        kill per stage still spreads the three signals), phases and moments drawn from `seed`."""
+        kill per stage still spreads the three signals), phases and moments drawn from `seed`. From
+        CALIBRATE_FROM kills on, one uninterrupted run as a process first times the kills (`Timing`); below,
+        the in-process reference does (a process takes longer: it loads numba's cache, torch's lazy parts)."""
         stage = self.stages[name]
         self.reference(stage.expected or name)
+        if kills >= CALIBRATE_FROM and name not in self.timings:
+            self.timings[name] = self.calibrate(stage)
         rng = random.Random(f"{seed}/{name}")
         offset = list(self.stages).index(name)
         outcomes = []
@@ -276,55 +307,80 @@ class Harness:
             shutil.rmtree(self.root / "kills" / f"{name}-{index:03d}", ignore_errors=True)
         return outcomes
 
+    def calibrate(self, stage: Stage) -> Timing:
+        """One uninterrupted run of `stage` as a process, checked like a kill (it must end in the new state)."""
+        folder = self.root / "kills" / f"{stage.name}-timing"
+        process, workspace, before = self._start(stage, folder)
+        watch = self._watch(process, workspace, None, "finish", random.Random(0), Timing(0.0, 0))
+        outcome = self._finish(stage, process, signal.SIGINT, "finish", watch, workspace, before, folder)
+        assert outcome.state == "new" and not outcome.problems, f"uninterrupted run of {stage.name}: {outcome}"
+        shutil.rmtree(folder, ignore_errors=True)
+        return Timing(watch.ended - watch.lock_at, len(watch.saves))
+
     def kill_once(self, stage: Stage, signum: int, phase: str, rng: random.Random, folder: Path) -> Outcome:
+        process, workspace, before = self._start(stage, folder)
+        reference = self.reference(stage.expected or stage.name)
+        timing = self.timings.get(stage.name, Timing(reference.seconds, 0))
+        watch = self._watch(process, workspace, signum, phase, rng, timing)
+        return self._finish(stage, process, signum, phase, watch, workspace, before, folder)
+
+    def _start(self, stage: Stage, folder: Path) -> tuple[subprocess.Popen, Path, dict[str, str]]:
+        """The stage as a process on a fresh copy of its base: (process, workspace, the files before)."""
         box, inputs = self._fresh(folder, stage)
         workspace = box / WS
         argv = stage.prepare(workspace, inputs)
         before = snapshot(workspace)
-        stdout, stderr = folder / "stdout.txt", folder / "stderr.txt"
-        with open(stdout, "wb") as out, open(stderr, "wb") as err:
+        with open(folder / "stderr.txt", "wb") as err:
             process = subprocess.Popen(
-                [sys.executable, "-m", "avatarperfect_cli", *argv], stdout=out, stderr=err,
+                [sys.executable, "-m", "avatarperfect_cli", *argv], stdout=subprocess.DEVNULL, stderr=err,
                 env={**os.environ, SAVE_DELAY_VARIABLE: str(SAVE_DELAY)}, preexec_fn=default_sigint,
             )  # fmt: skip
-            moment, lock_seen = self._kill_at_moment(process, workspace, signum, phase, rng, self.reference(stage.expected or stage.name))
-            status = process.wait(timeout=600)
-        outcome = Outcome(stage.name, signal.Signals(signum).name, phase, moment, lock_seen, status, "lost")
-        text = stderr.read_text(errors="replace")
+        return process, workspace, before
+
+    def _finish(
+        self, stage: Stage, process: subprocess.Popen, signum: int, phase: str, watch: Watch, workspace: Path,
+        before: dict[str, str], folder: Path,
+    ) -> Outcome:  # fmt: skip
+        status = process.wait(timeout=600)
+        lock_seen = watch.lock_at is not None and (watch.moment is None or watch.lock_at <= watch.moment)
+        outcome = Outcome(stage.name, signal.Signals(signum).name, phase, watch.moment, lock_seen, status, "lost")
+        outcome.ended = watch.ended
+        text = (folder / "stderr.txt").read_text(errors="replace")
         outcome.traceback, outcome.stderr_tail = "Traceback" in text, text[-600:]
         self.check(stage, outcome, workspace, before, folder)
         return outcome
 
-    def _kill_at_moment(
-        self, process: subprocess.Popen, workspace: Path, signum: int, phase: str, rng: random.Random, reference: Reference
-    ) -> tuple[float | None, bool]:
-        """Wait for the phase's moment, then signal; (seconds after the start or None if the process ended first,
-        whether the lock file had appeared)."""
+    def _watch(
+        self, process: subprocess.Popen, workspace: Path, signum: int | None, phase: str, rng: random.Random, timing: Timing
+    ) -> Watch:
+        """Follow the process (lock file, saves), send `signum` at the phase's moment, wait for its end."""
+        watch = Watch()
         start = time.perf_counter()
         lock = lock_path(workspace)
         usual_startup = statistics.median(self.startup_seconds) if self.startup_seconds else 2.0
         deadline = start + rng.uniform(0.0, usual_startup) if phase == "startup" else None
-        lock_seen = False
-        seen: set[str] = set()
+        chosen_save = rng.randint(1, timing.saves) if timing.saves else None  # else each save with probability 1/2
         while process.poll() is None:
             now = time.perf_counter()
-            if not lock_seen and lock.exists():
-                lock_seen = True
-                self.startup_seconds.append(now - start)
+            if watch.lock_at is None and lock.exists():
+                watch.lock_at = now - start
+                self.startup_seconds.append(watch.lock_at)
                 if phase == "run":
-                    deadline = now + rng.uniform(0.0, 1.2 * reference.seconds)
-            if phase == "save" and lock_seen and deadline is None:
+                    deadline = now + rng.uniform(0.0, 1.2 * timing.seconds)
+            if watch.lock_at is not None and (phase in ("save", "finish")) and deadline is None:
                 for entry in hidden_entries(workspace.parent):
-                    if entry not in seen and ".tmp" in entry:
-                        seen.add(entry)
-                        if rng.random() < 0.5:
+                    if entry not in watch.saves and ".tmp" in entry:
+                        watch.saves.add(entry)
+                        chosen = len(watch.saves) == chosen_save if chosen_save else rng.random() < 0.5
+                        if phase == "save" and chosen:
                             deadline = now + rng.uniform(0.0, SAVE_DELAY)
                             break
-            if deadline is not None and now >= deadline:
+            if signum is not None and deadline is not None and now >= deadline and watch.moment is None:
                 process.send_signal(signum)
-                return now - start, lock_seen
+                watch.moment = now - start
             time.sleep(POLL_S)
-        return None, lock_seen
+        watch.ended = time.perf_counter() - start
+        return watch
 
     def check(self, stage: Stage, outcome: Outcome, workspace: Path, before: dict[str, str], folder: Path) -> None:
         """Fill in `outcome.state` and `outcome.problems` (see the module doc)."""
@@ -355,7 +411,7 @@ class Harness:
             problems.append(f"neither the old nor the new state: {_difference(now, before, reference.after)}")
         if status == 0 and outcome.state != "new":
             problems.append("exit status 0 but the stage's result is missing")
-        if status == 0 and outcome.moment is not None and not outcome.lock_seen:
+        if status == 0 and outcome.moment is not None and outcome.ended - outcome.moment > IGNORED_AFTER_S and not outcome.lock_seen:
             problems.append(f"{outcome.signal} before the stage started was ignored: it ran to the end")
         if outcome.signal != "SIGKILL" and not _interrupt_status(outcome):
             problems.append(f"exit status {status} after {outcome.signal}")

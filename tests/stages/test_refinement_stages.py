@@ -111,6 +111,29 @@ def test_visibility_of_another_iteration_is_refused_and_nothing_changes(workspac
     assert snapshot(workspace) == before
 
 
+def test_new_edits_update_the_stored_visibility_with_the_edit_views_alone(workspace: Path, tmp_path: Path, monkeypatch):
+    """When only the edits changed, V = combine(stored video term, edit term) equals a recomputation from scratch."""
+    from avatarperfect_cli.refinement import visibility as visibility_module
+    from avatarperfect_cli.stages import visibility as stage
+
+    assert invoke("visibility", workspace).exit_code == 0
+    assert invoke("suggest", workspace, *FAST_SUGGEST).exit_code == 0
+    assert invoke("apply-edit", workspace, _paint_background_square(workspace, tmp_path)[0]).exit_code == 0
+    opened = open_workspace(workspace)
+    avatar = Avatar.load(opened.require_avatar())
+    rendered = []
+    monkeypatch.setattr(stage, "gaussian_visibility", lambda a, view: rendered.append(view) or visibility_module.gaussian_visibility(a, view))
+    updated = stage.current_visibility(opened, avatar, 0.01, progress=False)
+    assert len(rendered) == 1  # the one edit view, no video frame
+    assert updated.edits == ["001"]
+    rendered.clear()
+    fresh = stage.compute_visibility(opened, avatar, 0.01, progress=False)
+    assert len(rendered) == fresh.frames + 1
+    torch.testing.assert_close(updated.visibility, fresh.visibility, rtol=1e-12, atol=0)
+    with np.load(workspace / "visibility" / "000.npz") as data:
+        assert np.array_equal(data["video"], fresh.video.numpy())
+
+
 def test_missing_dataset_is_one_line(workspace: Path):
     manifest = json.loads((workspace / "workspace.json").read_text())
     manifest["dataset"] = str(workspace / "moved-away")
