@@ -22,9 +22,11 @@ test: install
 
 # The sample subject through the paper's loop: train, then ROUNDS x (visibility, suggest, a simulated
 # user paints the suggestion, apply-edit, refine), then a report and a walking video.
+# RESOLUTION: the sample's image side (benchmarks/study.py measures the loop at 512²).
 ROUNDS ?= 5
+RESOLUTION ?= 256
 demo: install
-	$(BIN)/avatarperfect make-sample $(DEMO)/sample
+	$(BIN)/avatarperfect make-sample $(DEMO)/sample --resolution $(RESOLUTION)
 	$(BIN)/avatarperfect train-initial $(DEMO)/sample/train $(DEMO)/ws --force
 	for round in $$(seq $(ROUNDS)); do \
 	  echo "== round $$round of $(ROUNDS)"; \

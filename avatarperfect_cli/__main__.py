@@ -1,7 +1,9 @@
 """Entry point of `avatarperfect` and `python -m avatarperfect_cli`.
 
-A command that writes a workspace another stage holds is refused before the CLI's heavy imports (torch
-and numba take seconds to load), with the line the lock itself gives; the lock stays the authority.
+Ctrl-C and SIGTERM are routed to `interrupts` first, so a signal during the start-up imports also ends
+in "interrupted" and status 130. A command that writes a workspace another stage holds is refused before
+the CLI's heavy imports (torch and numba take seconds to load), with the line the lock itself gives; the
+lock stays the authority.
 """
 
 from __future__ import annotations
@@ -14,10 +16,17 @@ LOCKING_COMMANDS = frozenset({"train-initial", "visibility", "suggest", "apply-e
 
 
 def main() -> None:
-    refuse_busy_workspace(sys.argv[1:])
-    from avatarperfect_cli.cli import app
+    from avatarperfect_cli import interrupts
 
-    app(prog_name="avatarperfect")
+    interrupts.install()
+    try:
+        refuse_busy_workspace(sys.argv[1:])
+        from avatarperfect_cli.cli import app
+
+        app(prog_name="avatarperfect")
+    except KeyboardInterrupt:  # before or after a command (the commands report their own)
+        print("interrupted: nothing was changed", file=sys.stderr)
+        raise SystemExit(130) from None
 
 
 def refuse_busy_workspace(argv: list[str]) -> None:

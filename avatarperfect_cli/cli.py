@@ -26,12 +26,13 @@ F = TypeVar("F", bound=Callable[..., object])
 DEVICE_HELP = "auto (cuda when torch sees a CUDA GPU, else cpu), cpu or cuda: where the avatar is rendered and trained."
 
 
-def _raise_interrupt(signum: int, frame: object) -> None:
-    raise KeyboardInterrupt
-
-
 def _is_interrupt(error: BaseException) -> bool:
-    """True for Ctrl-C, also when it surfaced inside a compiled numba kernel as a SystemError."""
+    """True for Ctrl-C and SIGTERM, also when one surfaced inside a compiled numba kernel as a SystemError
+    or after an interrupt signal turned into another exception."""
+    from avatarperfect_cli import interrupts
+
+    if interrupts.received():
+        return True
     seen: set[int] = set()
     current: BaseException | None = error
     while current is not None and id(current) not in seen:
@@ -48,15 +49,16 @@ def _one_line_errors(command: F) -> F:
 
     @functools.wraps(command)
     def wrapper(*args: object, **kwargs: object) -> object:
+        from avatarperfect_cli import interrupts
         from avatarperfect_cli.errors import AvatarPerfectError
 
-        signal.signal(signal.SIGTERM, _raise_interrupt)
+        interrupts.install((signal.SIGTERM,))  # the entry point routes SIGINT too
         try:
             return command(*args, **kwargs)
         except AvatarPerfectError as error:
             typer.echo(f"error: {error}", err=True)
             raise typer.Exit(2) from None
-        except (KeyboardInterrupt, SystemError) as error:
+        except (KeyboardInterrupt, Exception) as error:
             if not _is_interrupt(error):
                 raise
             typer.echo("interrupted: nothing was changed", err=True)

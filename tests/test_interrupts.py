@@ -1,0 +1,69 @@
+"""Interrupt signals become KeyboardInterrupt only in the package's own code; the CLI reports them."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from avatarperfect_cli import interrupts
+from avatarperfect_cli.io.workspace import lock_path
+
+
+@pytest.fixture()
+def routed():
+    saved = {signum: signal.getsignal(signum) for signum in (*interrupts.SIGNALS, signal.SIGALRM)}
+    interrupts.install()
+    yield
+    signal.setitimer(signal.ITIMER_REAL, 0.0)
+    for signum, handler in saved.items():
+        signal.signal(signum, handler)
+    interrupts._received.clear()
+
+
+def test_a_signal_waits_for_the_package_own_code(routed) -> None:
+    os.kill(os.getpid(), signal.SIGTERM)  # delivered while this test's (foreign) frame runs: deferred
+    assert interrupts.received()
+    deadline = time.monotonic() + 10.0
+    with pytest.raises(KeyboardInterrupt) as raised:
+        while time.monotonic() < deadline:
+            lock_path(Path("ws"))  # package code: the next poll that lands in it raises there
+    paths = [entry.path for entry in raised.traceback]
+    handler = paths.index(Path(interrupts.__file__))  # the handler's frames sit on top of the interrupted one
+    assert paths[handler - 1] == Path(lock_path.__code__.co_filename)
+
+
+def _routes_sigalrm(pid: int) -> bool:
+    """Whether process `pid` catches SIGALRM, i.e. has run `interrupts.install` (Python itself does not)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except FileNotFoundError:  # it has ended
+        return False
+    caught = int(next(line.split()[1] for line in status.splitlines() if line.startswith("SigCgt:")), 16)
+    return bool(caught >> (signal.SIGALRM - 1) & 1)
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_an_interrupt_during_the_imports_ends_in_one_line_and_130(tmp_path: Path, signum: int) -> None:
+    """The signal at moments through the heavy imports and the start of a command, once the entry point has
+    routed it: never status 1 or a traceback."""
+    for delay in (0.0, 0.1, 0.3, 0.8):
+        process = subprocess.Popen(
+            [sys.executable, "-m", "avatarperfect_cli", "visibility", str(tmp_path / "missing")],
+            stderr=subprocess.PIPE, text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        )  # fmt: skip
+        while process.poll() is None and not _routes_sigalrm(process.pid):
+            time.sleep(0.001)
+        time.sleep(delay)
+        process.send_signal(signum)
+        _, stderr = process.communicate(timeout=120)
+        assert "Traceback" not in stderr, stderr
+        if process.returncode == 2:  # it had already refused the missing workspace
+            assert "not a workspace" in stderr
+            continue
+        assert (process.returncode, stderr.strip().splitlines()) == (130, ["interrupted: nothing was changed"]), delay
