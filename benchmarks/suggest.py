@@ -76,35 +76,11 @@ def cli_seconds(*args: str, env: dict[str, str]) -> float:
     return time.perf_counter() - start
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("workspace", type=Path)
-    parser.add_argument("sample", type=Path)
-    parser.add_argument("--images", type=Path, default=Path("docs/images"))
-    parser.add_argument("--seeds", type=int, default=50)
-    parser.add_argument("--randoms", type=int, default=20)
-    parser.add_argument("--shown-seeds", type=int, default=10, help="seeds whose views are counted (table 1)")
-    args = parser.parse_args()
-    subject = SyntheticSubject.from_dataset(args.sample / "train")
-    scratch = Path(tempfile.mkdtemp(prefix="suggest-bench-"))
-    ws = scratch / "ws"
-    shutil.copytree(args.workspace, ws, ignore=shutil.ignore_patterns("suggestions", "edits", "visibility", "eval"))
-    workspace = open_workspace(ws)
-    avatar = Avatar.load(workspace.require_avatar())
-    reference = reference_pose(workspace)
-    prior = load_pose_prior("builtin", reference.body_pose)
-    capsules = BodyCapsules.from_points(avatar.params["means"].detach(), avatar.skin_weights.detach(), avatar.rest_joints)
-    visibility = current_visibility(workspace, avatar, 0.01, progress=False).visibility
+def views_and_validity(args, shown, avatar, visibility, prior, capsules, reference) -> None:
+    """Tables 1 and 2: what the suggested, camera-only and random views show; validity over the seeds."""
 
-    # 1 + 2: hidden regions shown, validity over seeds
     def run(mode: str, seed: int):
         return suggest_view(avatar, visibility, prior, capsules, reference, SuggestConfig(body_pose=mode, seed=seed))
-
-    train = load_people_snapshot(args.sample / "train", downscale=1)
-    unseen = subject.unseen_faces(train.body_pose, train.transl, train.camera)
-
-    def shown(pose) -> tuple[int, int]:
-        return unseen_pixels(subject, unseen, pose), hidden_pixels(subject, pose)
 
     validity = {"limit": 0, "intersect": 0}
     suggested_shown, seconds = [], []
@@ -133,6 +109,38 @@ def main() -> None:
         [["joint limits", str(validity["limit"])], ["limb through body (capsules, > 1 cm)", str(validity["intersect"])],
          ["search time per suggestion, median (in-process)", f"{statistics.median(seconds):.2f} s"]],
     )  # fmt: skip
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("workspace", type=Path)
+    parser.add_argument("sample", type=Path)
+    parser.add_argument("--images", type=Path, default=Path("docs/images"))
+    parser.add_argument("--seeds", type=int, default=50)
+    parser.add_argument("--randoms", type=int, default=20)
+    parser.add_argument("--shown-seeds", type=int, default=10, help="seeds whose views are counted (table 1)")
+    parser.add_argument("--sequence-only", action="store_true", help="only tables 3 and 4 (the sequence, CLI times)")
+    args = parser.parse_args()
+    subject = SyntheticSubject.from_dataset(args.sample / "train")
+    scratch = Path(tempfile.mkdtemp(prefix="suggest-bench-"))
+    ws = scratch / "ws"
+    shutil.copytree(args.workspace, ws, ignore=shutil.ignore_patterns("suggestions", "edits", "visibility", "eval"))
+    workspace = open_workspace(ws)
+    avatar = Avatar.load(workspace.require_avatar())
+    reference = reference_pose(workspace)
+    prior = load_pose_prior("builtin", reference.body_pose)
+    capsules = BodyCapsules.from_points(avatar.params["means"].detach(), avatar.skin_weights.detach(), avatar.rest_joints)
+    visibility = current_visibility(workspace, avatar, 0.01, progress=False).visibility
+
+    train = load_people_snapshot(args.sample / "train", downscale=1)
+    unseen = subject.unseen_faces(train.body_pose, train.transl, train.camera)
+
+    def shown(pose) -> tuple[int, int]:
+        """(unseen-surface pixels, hidden-texture pixels) of the subject's exact render at `pose`."""
+        return unseen_pixels(subject, unseen, pose), hidden_pixels(subject, pose)
+
+    if not args.sequence_only:
+        views_and_validity(args, shown, avatar, visibility, prior, capsules, reference)
 
     # 3: five successive suggestions, each registered as an edit view before the next
     frames, rows = [], []
