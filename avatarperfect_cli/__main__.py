@@ -27,6 +27,8 @@ def main() -> None:
     except KeyboardInterrupt:  # before or after a command (the commands report their own)
         print("interrupted: nothing was changed", file=sys.stderr)
         raise SystemExit(130) from None
+    finally:
+        interrupts.finish()
 
 
 def refuse_busy_workspace(argv: list[str]) -> None:

@@ -1,23 +1,27 @@
 """Ctrl-C and SIGTERM, raised as KeyboardInterrupt only where avatarperfect's own code runs.
 
-Python raises KeyboardInterrupt wherever the main thread happens to be. Inside numpy's lazy imports or
-numba's compiler callbacks that exception is swallowed or turned into another one, and the stage then
-ends with a traceback and status 1, or runs on. Here the signal is recorded, and KeyboardInterrupt is
-raised once the interrupted frame belongs to this package (checked again every POLL_S seconds until it
-does). Every write of a stage is atomic, so raising anywhere in our own code is safe.
+Python raises KeyboardInterrupt wherever the main thread happens to be. Inside an import (numpy's lazy
+attributes) or numba's compiler callbacks that exception is swallowed or turned into another one, and
+the stage then ends with a traceback and status 1, or runs on. Here the signal is recorded, and
+KeyboardInterrupt is raised at once where that is safe: in this package's own code, or anywhere no
+import or numba frame is on the stack; otherwise the check repeats every POLL_S seconds. Every write of
+a stage is atomic, so raising anywhere in our own code is safe.
 """
 
 from __future__ import annotations
 
 import atexit
+import os
 import signal
 from pathlib import Path
 from types import FrameType
 
 PACKAGE = str(Path(__file__).resolve().parent)
 POLL_S = 0.02
+UNSAFE = ("importlib._bootstrap", f"{os.sep}numba{os.sep}")  # frames an exception must not start in
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
 _received: list[int] = []  # the signals seen, in order
+_finished: list[bool] = []  # non-empty once the command is over: signals are only recorded
 
 
 def install(signals: tuple[int, ...] = SIGNALS) -> None:
@@ -35,13 +39,21 @@ def received() -> bool:
     return bool(_received)
 
 
+def finish() -> None:
+    """The command is over (the process is exiting): from now on a signal is only recorded, so none
+    raises inside the interpreter's exit handlers."""
+    _finished.append(True)
+    _stop_polling()
+
+
 def on_signal(signum: int, frame: FrameType | None) -> None:
     _received.append(signum)
-    _raise_in_own_code(frame)
+    if not _finished:
+        _raise_in_own_code(frame)
 
 
 def _on_poll(signum: int, frame: FrameType | None) -> None:
-    if _received:
+    if _received and not _finished:
         _raise_in_own_code(frame)
 
 
@@ -50,7 +62,19 @@ def _stop_polling() -> None:
 
 
 def _raise_in_own_code(frame: FrameType | None) -> None:
-    if frame is not None and frame.f_code.co_filename.startswith(PACKAGE):
+    if frame is not None and _safe(frame):
         _stop_polling()
         raise KeyboardInterrupt
-    signal.setitimer(signal.ITIMER_REAL, POLL_S)  # not ours: look again shortly
+    signal.setitimer(signal.ITIMER_REAL, POLL_S)  # look again shortly
+
+
+def _safe(frame: FrameType) -> bool:
+    """Whether KeyboardInterrupt may start in `frame`: our own code, or a stack without an import or numba."""
+    if frame.f_code.co_filename.startswith(PACKAGE):
+        return True
+    current: FrameType | None = frame
+    while current is not None:
+        if any(part in current.f_code.co_filename for part in UNSAFE):
+            return False
+        current = current.f_back
+    return True

@@ -26,16 +26,35 @@ def routed():
     interrupts._received.clear()
 
 
-def test_a_signal_waits_for_the_package_own_code(routed) -> None:
-    os.kill(os.getpid(), signal.SIGTERM)  # delivered while this test's (foreign) frame runs: deferred
-    assert interrupts.received()
+def test_a_signal_during_an_import_waits_until_the_import_is_done(routed, tmp_path: Path, monkeypatch) -> None:
+    """A signal delivered inside an import does not break it; KeyboardInterrupt comes right after, outside."""
+    (tmp_path / "slow_module.py").write_text(
+        "import os, signal, time\n"
+        "os.kill(os.getpid(), signal.SIGTERM)\n"
+        "end = time.monotonic() + 0.3\n"
+        "while time.monotonic() < end:\n"
+        "    pass\n"
+        "COMPLETE = True\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, "slow_module", raising=False)
     deadline = time.monotonic() + 10.0
-    with pytest.raises(KeyboardInterrupt) as raised:
+    with pytest.raises(KeyboardInterrupt):
+        import slow_module  # noqa: F401
+
         while time.monotonic() < deadline:
-            lock_path(Path("ws"))  # package code: the next poll that lands in it raises there
-    paths = [entry.path for entry in raised.traceback]
-    handler = paths.index(Path(interrupts.__file__))  # the handler's frames sit on top of the interrupted one
-    assert paths[handler - 1] == Path(lock_path.__code__.co_filename)
+            time.sleep(0.001)  # the next poll lands here, outside any import
+    assert interrupts.received() and sys.modules["slow_module"].COMPLETE
+
+
+def test_plain_code_is_safe_an_import_is_not(tmp_path: Path, monkeypatch) -> None:
+    assert interrupts._safe(sys._getframe())
+    (tmp_path / "frame_module.py").write_text("import sys\nFRAME = sys._getframe()\n")  # its body runs in an import
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, "frame_module", raising=False)
+    import frame_module
+
+    assert not interrupts._safe(frame_module.FRAME)
 
 
 def _routes_sigalrm(pid: int) -> bool:

@@ -315,7 +315,8 @@ class Harness:
         outcome = self._finish(stage, process, signal.SIGINT, "finish", watch, workspace, before, folder)
         assert outcome.state == "new" and not outcome.problems, f"uninterrupted run of {stage.name}: {outcome}"
         shutil.rmtree(folder, ignore_errors=True)
-        return Timing(watch.ended - watch.lock_at, len(watch.saves))
+        locked = watch.ended - watch.lock_at if watch.lock_at is not None else POLL_S  # a lock held < one poll
+        return Timing(locked, len(watch.saves))
 
     def kill_once(self, stage: Stage, signum: int, phase: str, rng: random.Random, folder: Path) -> Outcome:
         process, workspace, before = self._start(stage, folder)
