@@ -39,6 +39,14 @@ def received() -> bool:
     return bool(_received)
 
 
+def check() -> None:
+    """Raise KeyboardInterrupt if a signal arrived and is still pending: called before a stage takes its
+    workspace, so a signal deferred through the start-up imports stops a stage too short to be polled."""
+    if _received and not _finished:
+        _stop_polling()
+        raise KeyboardInterrupt
+
+
 def finish() -> None:
     """The command is over (the process is exiting): from now on a signal is only recorded, so none
     raises inside the interpreter's exit handlers."""

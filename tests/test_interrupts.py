@@ -47,6 +47,16 @@ def test_a_signal_during_an_import_waits_until_the_import_is_done(routed, tmp_pa
     assert interrupts.received() and sys.modules["slow_module"].COMPLETE
 
 
+def test_a_pending_signal_stops_a_stage_before_it_takes_the_workspace(routed, tmp_path: Path) -> None:
+    from avatarperfect_cli.io.workspace import workspace_lock
+
+    interrupts._received.append(signal.SIGTERM)  # as if deferred through the start-up imports
+    with pytest.raises(KeyboardInterrupt):
+        with workspace_lock(tmp_path / "ws"):
+            pass
+    assert not lock_path(tmp_path / "ws").exists()
+
+
 def test_plain_code_is_safe_an_import_is_not(tmp_path: Path, monkeypatch) -> None:
     assert interrupts._safe(sys._getframe())
     (tmp_path / "frame_module.py").write_text("import sys\nFRAME = sys._getframe()\n")  # its body runs in an import

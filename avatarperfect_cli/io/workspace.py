@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from avatarperfect_cli import interrupts
 from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
 from avatarperfect_cli.io.atomic import atomic_folder, atomic_write_text, recover_folder, remove_temporaries
 
@@ -154,6 +155,7 @@ def workspace_lock(root: Path) -> Iterator[None]:
     locker that finds its file was removed meanwhile tries again. On entry, leftovers of a killed stage
     are cleaned up.
     """
+    interrupts.check()
     path = lock_path(root)
     path.parent.mkdir(parents=True, exist_ok=True)
     descriptor = _acquire(path, root)
