@@ -4,7 +4,8 @@ Python raises KeyboardInterrupt wherever the main thread happens to be. Inside a
 attributes) or numba's compiler callbacks that exception is swallowed or turned into another one, and
 the stage then ends with a traceback and status 1, or runs on. Here the signal is recorded, and
 KeyboardInterrupt is raised at once where that is safe: in this package's own code, or anywhere no
-import or numba frame is on the stack; otherwise the check repeats every POLL_S seconds. Every write of
+import, numba or command-line framework frame is on the stack; otherwise the check repeats every POLL_S
+seconds. Every write of
 a stage is atomic, so raising anywhere in our own code is safe.
 """
 
@@ -18,7 +19,9 @@ from types import FrameType
 
 PACKAGE = str(Path(__file__).resolve().parent)
 POLL_S = 0.02
-UNSAFE = ("importlib._bootstrap", f"{os.sep}numba{os.sep}")  # frames an exception must not start in
+# frames an exception must not start in: imports, numba's callbacks, and the command line's framework
+# (typer ends a KeyboardInterrupt of its own with status 130 and no message)
+UNSAFE = ("importlib._bootstrap", *(f"{os.sep}{package}{os.sep}" for package in ("numba", "click", "typer")))
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
 _received: list[int] = []  # the signals seen, in order
 _finished: list[bool] = []  # non-empty once the command is over: signals are only recorded
