@@ -33,8 +33,9 @@ def install(signals: tuple[int, ...] = SIGNALS) -> None:
     for signum in signals:
         if signal.getsignal(signum) is not signal.SIG_IGN:
             signal.signal(signum, on_signal)
-    signal.signal(signal.SIGALRM, _on_poll)
-    atexit.register(_stop_polling)  # Python restores SIGALRM's default (terminate) as it exits
+    if signal.getsignal(signal.SIGALRM) is not _on_poll:
+        signal.signal(signal.SIGALRM, _on_poll)
+        atexit.register(_stop_polling)  # Python restores SIGALRM's default (terminate) as it exits
 
 
 def received() -> bool:
@@ -80,7 +81,7 @@ def _raise_in_own_code(frame: FrameType | None) -> None:
 
 
 def _safe(frame: FrameType) -> bool:
-    """Whether KeyboardInterrupt may start in `frame`: our own code, or a stack without an import or numba."""
+    """Whether KeyboardInterrupt may start in `frame`: our own code, or a stack without an UNSAFE frame."""
     if frame.f_code.co_filename.startswith(PACKAGE):
         return True
     current: FrameType | None = frame
