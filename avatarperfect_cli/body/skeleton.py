@@ -143,13 +143,13 @@ def _polar_rotation(m, tolerance, out) -> None:
     out[2, 0], out[2, 1], out[2, 2] = sign * g, sign * h, sign * i
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, parallel=True)
 def _skin_gaussians_forward(
     blended, means, quats, tolerance, rotations, rotation_quats, posed_means, posed_quats
 ) -> None:
     """Per Gaussian, with blended = [L | t]: posed mean = L mean + t; R = polar rotation of L,
-    r = quaternion of R, posed quat = r * quat."""
-    for n in range(blended.shape[0]):
+    r = quaternion of R, posed quat = r * quat. One `prange` over the Gaussians."""
+    for n in numba.prange(blended.shape[0]):
         m = blended[n]
         mean = means[n]
         for i in range(3):
@@ -162,7 +162,7 @@ def _skin_gaussians_forward(
         posed_quats[n, 0], posed_quats[n, 1], posed_quats[n, 2], posed_quats[n, 3] = pw, px, py, pz
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, parallel=True)
 def _skin_gaussians_backward(
     blended, means, quats, rotations, rotation_quats, grad_means, grad_quats, grad_blended, grad_in_means, grad_in_quats
 ) -> None:
@@ -174,7 +174,7 @@ def _skin_gaussians_backward(
     is vec(conj(r) * g_r) / 2. Differentiating L = R S gives (tr(S) I - S) w = vee(R^T dL - dL^T R), hence
     the gradient w.r.t. L is R [h]x with h = (tr(S) I - S)^-1 (gradient w.r.t. w).
     """
-    for n in range(blended.shape[0]):
+    for n in numba.prange(blended.shape[0]):
         m = blended[n]
         gm = grad_means[n]
         mean = means[n]

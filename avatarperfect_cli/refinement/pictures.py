@@ -25,6 +25,7 @@ CANONICAL_VIEWS = (
 )
 GUIDE_TINT = (1.0, 0.0, 0.8)  # magenta: no subject colour is this saturated
 GUIDE_OUTLINE = (255, 0, 200)
+FONT = cv2.FONT_HERSHEY_SIMPLEX
 
 
 def barely_seen(visibility: torch.Tensor, share_of_mean: float = 0.1) -> torch.Tensor:
@@ -42,40 +43,67 @@ def _panel_camera(points: torch.Tensor, direction: tuple[float, ...], up: tuple[
     return Camera(K, look_at(center + distance * towards, center, torch.tensor(up)), PANEL_SIZE, PANEL_SIZE)
 
 
+def viridis_lut() -> torch.Tensor:
+    """(256, 3) float32 RGB in [0, 1]: the perceptual viridis colour map (OpenCV's table)."""
+    levels = np.arange(256, dtype=np.uint8)[:, None]
+    bgr = cv2.applyColorMap(levels, cv2.COLORMAP_VIRIDIS)[:, 0]
+    return torch.from_numpy(np.ascontiguousarray(bgr[:, ::-1])).float() / 255.0
+
+
+def _text(canvas: np.ndarray, text: str, center_x: int, baseline_y: int, scale: float = 0.6) -> None:
+    """Black anti-aliased text centred on `center_x`, in place on an (H, W, 3) uint8 RGB canvas."""
+    width = cv2.getTextSize(text, FONT, scale, 1)[0][0]
+    cv2.putText(canvas, text, (center_x - width // 2, baseline_y), FONT, scale, (0, 0, 0), 1, cv2.LINE_AA)
+
+
+def _colour_bar(lut: torch.Tensor, low: float, high: float, height: int, label: str) -> np.ndarray:
+    """(height, w, 3) uint8 RGB: a vertical colour bar of `lut` from `low` (bottom) to `high` (top) on a
+    log scale, ticks at the powers of ten between them, and `label` written upwards beside it."""
+    bar_width, margin, label_width = 18, int(0.05 * height), 44
+    canvas = np.full((height, bar_width + label_width + 24, 3), 255, np.uint8)
+    top, bottom = margin, height - margin
+    rows = torch.linspace(1.0, 0.0, bottom - top)
+    canvas[top:bottom, :bar_width] = (lut[(rows * 255).round().long()] * 255).round().byte().numpy()[:, None]
+    cv2.rectangle(canvas, (0, top), (bar_width - 1, bottom - 1), (0, 0, 0), 1)
+    log_low, log_high = math.log10(low), math.log10(high)
+    for power in range(math.ceil(log_low), math.floor(log_high) + 1):
+        y = round(bottom - 1 - (power - log_low) / (log_high - log_low) * (bottom - top - 1))
+        cv2.line(canvas, (bar_width, y), (bar_width + 4, y), (0, 0, 0), 1)
+        cv2.putText(canvas, f"1e{power}", (bar_width + 7, y + 5), FONT, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    strip = np.full((24, height, 3), 255, np.uint8)  # the label, written along the bar, then turned
+    _text(strip, label, height // 2, 17, 0.5)
+    canvas[:, -24:] = np.rot90(strip)
+    return canvas
+
+
 def visibility_picture(avatar: Avatar, visibility: torch.Tensor, title: str) -> bytes:
     """PNG bytes: the canonical avatar (T-pose) from the front, both sides, the back and below, each
     Gaussian coloured by its accumulated visibility V (N,) on a logarithmic perceptual colour map
     (dark: barely seen), with a colour bar. Rendered on the avatar's device; `visibility` on the CPU."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    from matplotlib import colormaps, colors
-    from matplotlib import pyplot as plt
-
     # the colours resolve the barely seen half: everything above the median is "seen" (brightest)
     positive = visibility[visibility > 0]
     low = float(torch.quantile(positive, 0.01)) if len(positive) else 1e-3
     high = max(float(torch.quantile(visibility, 0.5)), low * 10)
-    norm = colors.LogNorm(vmin=low, vmax=high)
-    colour_map = colormaps["viridis"]
-    gaussian_colours = torch.from_numpy(colour_map(norm(visibility.clamp(low, high).numpy()))[:, :3]).float()
-    gaussian_colours = gaussian_colours.to(avatar.device)
+    lut = viridis_lut()
+    shade = (visibility.clamp(low, high).log() - math.log(low)) / (math.log(high) - math.log(low))
+    gaussian_colours = lut[(shade * 255).round().long()].to(avatar.device)
     with torch.no_grad():
         means, quats = avatar.pose(torch.zeros(NUM_JOINTS, 3), torch.zeros(3))
         panels = []
         for _, direction, up in CANONICAL_VIEWS:
             camera = _panel_camera(means.cpu(), direction, up)
             out = rasterization(means, quats, avatar.scales, avatar.opacities, gaussian_colours, camera, background=torch.ones(3))
-            panels.append(out.image.clamp(0, 1).cpu().numpy())
-    figure, axes = plt.subplots(1, len(panels) + 1, figsize=(3.2 * len(panels) + 0.8, 3.9),
-                                gridspec_kw={"width_ratios": [1] * len(panels) + [0.06]})  # fmt: skip
-    for axis, panel, (name, _, _) in zip(axes, panels, CANONICAL_VIEWS):
-        axis.imshow(panel)
-        axis.set_title(name)
-        axis.axis("off")
-    bar = figure.colorbar(matplotlib.cm.ScalarMappable(norm=norm, cmap=colour_map), cax=axes[-1])
-    bar.set_label("mean visibility per frame (pixels)")
-    return figure_png(figure, title)
+            panels.append((out.image.clamp(0, 1).cpu() * 255).round().byte().numpy())
+    title_height, name_height = 40, 28
+    body = np.concatenate(panels, axis=1)
+    bar = _colour_bar(lut, low, high, PANEL_SIZE, "mean visibility per frame (pixels)")
+    canvas = np.full((title_height + name_height + PANEL_SIZE, body.shape[1] + bar.shape[1], 3), 255, np.uint8)
+    canvas[title_height + name_height :, : body.shape[1]] = body
+    canvas[title_height + name_height :, body.shape[1] :] = bar
+    _text(canvas, title, canvas.shape[1] // 2, 28, 0.7)
+    for index, (name, _, _) in enumerate(CANONICAL_VIEWS):
+        _text(canvas, name, index * PANEL_SIZE + PANEL_SIZE // 2, title_height + 20)
+    return cv2.imencode(".png", canvas[..., ::-1])[1].tobytes()
 
 
 def figure_png(figure, title: str) -> bytes:
