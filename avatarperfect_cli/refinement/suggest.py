@@ -32,8 +32,10 @@ from avatarperfect_cli.refinement.pose_prior import PosePrior
 from avatarperfect_cli.refinement.visibility import suggestion_weights
 from avatarperfect_cli.render import Camera, rasterization
 from avatarperfect_cli.render.camera import framing_distance, rotation_about
+from avatarperfect_cli.training.optim import Adam
 
 BODY_POSE_MODES = ("optimise", "canonical", "random")
+SUGGEST_ADAM_EPS = 1e-8  # torch.optim.Adam's default: z and the angles are O(1), unlike the Gaussians' parameters
 
 
 @dataclass
@@ -241,7 +243,7 @@ def _optimise(view, capsules, objective, separated, latent, azimuth, elevation, 
     groups = [{"params": [angles], "lr": config.angle_learning_rate}]
     if config.body_pose == "optimise":
         groups.append({"params": [latent], "lr": config.latent_learning_rate})
-    optimizer = torch.optim.Adam(groups)
+    optimizer = Adam(groups, eps=SUGGEST_ADAM_EPS)
     best = None
     for _ in range(config.steps):
         value, pose = objective(latent, angles[0], angles[1], camera)

@@ -237,6 +237,19 @@ def rasterize_forward(
     return image, transmittance, last, intersection_weights
 
 
+@njit(cache=True, inline="always")
+def _any_gradient(grad_image, grad_alpha, x0, x1, y0, y1):
+    """Whether any pixel of the tile [x0, x1] x [y0, y1] has a non-zero upstream gradient."""
+    for y in range(y0, y1 + 1):
+        for x in range(x0, x1 + 1):
+            if grad_alpha[y, x] != 0.0:
+                return True
+            for ch in range(grad_image.shape[2]):
+                if grad_image[y, x, ch] != 0.0:
+                    return True
+    return False
+
+
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
 def rasterize_backward(
     means2d, conics, opacities, features, background, spans, tile_offsets, tile_gaussians, schedule,
@@ -267,6 +280,8 @@ def rasterize_backward(
             y0 = (t // tiles_x) * tile_size
             x1 = min(x0 + tile_size, width) - 1
             y1 = min(y0 + tile_size, height) - 1
+            if not _any_gradient(grad_image, grad_alpha, x0, x1, y0, y1):
+                continue  # a masked loss: nothing flows back through this tile, its records stay zero
             tile_last[:] = -1
             max_last = -1
             for y in range(y0, y1 + 1):

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import torch
 
 from avatarperfect_cli.devices import CPU
-from avatarperfect_cli.training.optim import ADAM_EPS
+from avatarperfect_cli.training.optim import Adam
 
 
 @dataclass
@@ -32,7 +32,7 @@ class PoseRefiner:
         self.config = config or PoseRefinementConfig()
         self.pose_offsets = torch.nn.Parameter(torch.zeros(frames, 24, 3, device=device))
         self.transl_offsets = torch.nn.Parameter(torch.zeros(frames, 3, device=device))
-        self.optimizer = torch.optim.Adam([self.pose_offsets, self.transl_offsets], lr=self.config.learning_rate, eps=ADAM_EPS)
+        self.optimizer = Adam([{"params": [self.pose_offsets, self.transl_offsets], "lr": self.config.learning_rate}])
 
     def pose(self, frame: int, body_pose: torch.Tensor, transl: torch.Tensor, step: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Frame `frame`'s pose (24, 3) and translation (3,), offset once refinement has started."""

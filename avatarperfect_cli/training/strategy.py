@@ -37,6 +37,7 @@ import torch
 
 from avatarperfect_cli.body import quaternion_to_matrix
 from avatarperfect_cli.render import RenderOutput
+from avatarperfect_cli.training.optim import Adam
 
 REQUIRED_PARAMETERS = ("means", "quats", "log_scales", "opacity_logits")
 
@@ -92,7 +93,7 @@ class RefineStats:
 
 def replace_rows(
     params: MutableMapping[str, torch.nn.Parameter],
-    optimizers: MutableMapping[str, torch.optim.Optimizer],
+    optimizers: MutableMapping[str, Adam],
     keep: torch.Tensor,
     new_rows: dict[str, torch.Tensor],
 ) -> None:
@@ -135,7 +136,7 @@ class DensifyStrategy:
     def step_pre_backward(
         self,
         params: MutableMapping[str, torch.nn.Parameter],
-        optimizers: MutableMapping[str, torch.optim.Optimizer],
+        optimizers: MutableMapping[str, Adam],
         state: DensifyState,
         step: int,
         render_output: RenderOutput,
@@ -147,7 +148,7 @@ class DensifyStrategy:
     def step_post_backward(
         self,
         params: MutableMapping[str, torch.nn.Parameter],
-        optimizers: MutableMapping[str, torch.optim.Optimizer],
+        optimizers: MutableMapping[str, Adam],
         state: DensifyState,
         step: int,
         render_output: RenderOutput,
@@ -184,7 +185,7 @@ class DensifyStrategy:
     def _refine(
         self,
         params: MutableMapping[str, torch.nn.Parameter],
-        optimizers: MutableMapping[str, torch.optim.Optimizer],
+        optimizers: MutableMapping[str, Adam],
         state: DensifyState,
     ) -> RefineStats:
         c = self.config
@@ -224,7 +225,7 @@ class DensifyStrategy:
 
     @torch.no_grad()
     def _reset_opacities(
-        self, params: MutableMapping[str, torch.nn.Parameter], optimizers: MutableMapping[str, torch.optim.Optimizer]
+        self, params: MutableMapping[str, torch.nn.Parameter], optimizers: MutableMapping[str, Adam]
     ) -> None:
         """Clamp opacities to 2 * prune_opacity and zero their optimizer moments."""
         value = 2.0 * self.config.prune_opacity

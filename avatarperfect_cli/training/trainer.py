@@ -125,10 +125,10 @@ def train(
                 if pose_refiner is not None:
                     body_pose, transl = pose_refiner.pose(index, body_pose, transl, step)
             background = torch.rand(3).to(device)
-            target = torch.where(view.foreground[..., None], view.image, background)
+            target = torch.where(view.foreground[rows, cols, None], view.image[rows, cols], background)
             out = render_avatar(avatar, body_pose, transl, view.camera, background)
             mask = None if view.loss_mask is None else view.loss_mask[rows, cols]
-            loss = image_loss(out.image[rows, cols], target[rows, cols], mask, config.ssim_weight)
+            loss = image_loss(out.image[rows, cols], target, mask, config.ssim_weight)
 
             strategy.step_pre_backward(avatar.params, optimizers, state, step, out)
             loss.backward()
@@ -138,5 +138,5 @@ def train(
             if pose_refiner is not None:
                 pose_refiner.step(step)
             strategy.step_post_backward(avatar.params, optimizers, state, step, out)
-            bar.update(loss=loss.item(), image=out.image[rows, cols].detach(), target=target[rows, cols], count=len(avatar))
+            bar.update(loss=loss.item(), image=out.image[rows, cols].detach(), target=target, count=len(avatar))
     return avatar

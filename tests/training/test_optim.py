@@ -3,7 +3,10 @@ import math
 import pytest
 import torch
 
-from avatarperfect_cli.training.optim import LearningRates, create_optimizers, exponential_decay, set_learning_rates
+from avatarperfect_cli.training import optim
+from avatarperfect_cli.training.optim import (
+    ADAM_EPS, Adam, LearningRates, create_optimizers, exponential_decay, set_learning_rates,
+)
 
 
 def test_exponential_decay_is_log_linear() -> None:
@@ -53,3 +56,38 @@ def test_one_adam_per_parameter_follows_the_schedule() -> None:
         optimizer.step()
     assert torch.allclose(params["means"], torch.full((4, 3), -1.6e-5))
     assert torch.allclose(params["quats"], torch.full((4, 4), 1 - 5e-3))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("on_torch_ops", [False, True])
+@pytest.mark.parametrize("eps", [ADAM_EPS, 1e-8])
+def test_adam_matches_torch_optim_adam(dtype, on_torch_ops, eps, monkeypatch) -> None:
+    """The fused kernel (and the torch-ops path other devices take) against torch.optim.Adam, with a
+    learning rate that changes between steps and a parameter whose gradient is missing on one step."""
+    if on_torch_ops:  # the path CUDA tensors take, exercised on the CPU
+        monkeypatch.setattr(optim, "_adam_kernel", lambda *args: pytest.fail("the kernel ran"))
+        monkeypatch.setattr(torch.Tensor, "is_contiguous", lambda self, *args, **kwargs: False)
+    generator = torch.Generator().manual_seed(0)
+    start = [torch.randn(257, 3, generator=generator, dtype=dtype), torch.randn(11, generator=generator, dtype=dtype)]
+    ours = [torch.nn.Parameter(value.clone()) for value in start]
+    reference = [torch.nn.Parameter(value.clone()) for value in start]
+    adam = Adam([{"params": ours, "lr": 0.01}], eps=eps)
+    torch_adam = torch.optim.Adam([{"params": reference, "lr": 0.01}], eps=eps)
+    for step in range(6):
+        for group in adam.param_groups + torch_adam.param_groups:
+            group["lr"] = 0.01 * 0.7**step
+        grads = [torch.randn(value.shape, generator=generator, dtype=dtype) * 10.0 ** (step - 3) for value in start]
+        for params in (ours, reference):
+            for index, (param, grad) in enumerate(zip(params, grads)):
+                param.grad = None if (step == 2 and index == 1) else grad.clone()
+        adam.step()
+        torch_adam.step()
+    monkeypatch.undo()
+    tolerance = 1e-6 if dtype == torch.float32 else 1e-12
+    for param, expected, value in zip(ours, reference, start):
+        assert (param - value).abs().max() > 1e-3  # it moved
+        torch.testing.assert_close(param.detach(), expected.detach(), rtol=tolerance, atol=tolerance)
+        torch.testing.assert_close(adam.state[param]["exp_avg_sq"], torch_adam.state[expected]["exp_avg_sq"], rtol=tolerance, atol=1e-30)
+    assert adam.state[ours[1]]["step"] == 5 and adam.state[ours[0]]["step"] == 6
+    adam.zero_grad()
+    assert all(param.grad is None for param in ours)
