@@ -9,12 +9,18 @@ from avatarperfect_cli.render import Camera, RenderOutput, rasterization
 
 
 def render_avatar(
-    avatar: Avatar, body_pose: torch.Tensor, transl: torch.Tensor, camera: Camera, background: torch.Tensor
+    avatar: Avatar,
+    body_pose: torch.Tensor,
+    transl: torch.Tensor,
+    camera: Camera,
+    background: torch.Tensor,
+    region: tuple[slice, slice] | None = None,
 ) -> RenderOutput:
     """Pose the avatar (body_pose (24, 3) axis-angle, transl (3,) metres) and render it with its
-    active SH degree over `background` (3,). Differentiable w.r.t. the avatar and the pose."""
+    active SH degree over `background` (3,); `region` as in `rasterization`. Differentiable w.r.t. the
+    avatar and the pose."""
     means, quats = avatar.pose(body_pose, transl)
     return rasterization(
         means, quats, avatar.scales, avatar.opacities, avatar.sh, camera,
-        sh_degree=avatar.active_sh_degree, background=background,
+        sh_degree=avatar.active_sh_degree, background=background, region=region,
     )  # fmt: skip

@@ -31,6 +31,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         drawn: torch.Tensor,
         width: int,
         height: int,
+        region: np.ndarray,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         arrays = [_array(t) for t in (means2d, conics, opacities, features, background)]
         arrays.append(kernels.gaussian_spans(arrays[1], arrays[2], _array(drawn)))
@@ -38,11 +39,11 @@ class _RasterizeToPixels(torch.autograd.Function):
         depth_keys = depth_array.view(np.uint32 if depth_array.itemsize == 4 else np.uint64)
         offsets, tile_gaussians = kernels.bin_gaussians(
             _array(means2d), _array(extents), depth_keys, 8 * depth_array.itemsize, _array(drawn),
-            width, height, TILE_SIZE,
+            width, height, TILE_SIZE, region,
         )  # fmt: skip
         schedule = kernels.tile_schedule(offsets)
         layout = (offsets, tile_gaussians, schedule, width, height, TILE_SIZE, numba.get_num_threads())
-        image, transmittance, last, weights = kernels.rasterize_forward(*arrays, *layout)
+        image, transmittance, last, weights = kernels.rasterize_forward(*arrays, *layout, region)
         visibility = kernels.sum_per_gaussian(weights[:, None], tile_gaussians, means2d.shape[0])[:, 0]
         ctx.arrays = arrays
         ctx.layout = layout
@@ -77,6 +78,7 @@ class _RasterizeToPixels(torch.autograd.Function):
             None,
             None,
             None,
+            None,
         )
 
 
@@ -91,17 +93,29 @@ def rasterize_to_pixels(
     drawn: torch.Tensor,
     width: int,
     height: int,
+    region: tuple[slice, slice] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Composite projected Gaussians front to back (gsplat conventions), on the CPU.
 
     means2d (N, 2) pixels; conics (N, 3) 1/pixel^2; opacities (N,); features (N, C) any channels;
-    background (C,); extents (N, 2) pixels and depths (N,) metres for binning; drawn (N,) bool.
-    Returns image (H, W, C), alpha (H, W) and visibility (N,) = sum over pixels of T * alpha
-    (not differentiable). Gradients flow to means2d, conics, opacities, features and background.
+    background (C,); extents (N, 2) pixels and depths (N,) metres for binning; drawn (N,) bool;
+    region: (rows, cols) slices of the pixels to composite (default all); the others are background
+    with alpha 0 and pass no gradient.
+    Returns image (H, W, C), alpha (H, W) and visibility (N,) = sum over the composited pixels of
+    T * alpha (not differentiable). Gradients flow to means2d, conics, opacities, features and background.
     """
     return _RasterizeToPixels.apply(
-        means2d, conics, opacities, features, background, extents, depths, drawn, width, height
-    )
+        means2d, conics, opacities, features, background, extents, depths, drawn, width, height,
+        _region_bounds(region, width, height),
+    )  # fmt: skip
+
+
+def _region_bounds(region: tuple[slice, slice] | None, width: int, height: int) -> np.ndarray:
+    """(row_start, row_stop, col_start, col_stop) int64 of a (rows, cols) pair of step-1 slices."""
+    if region is None:
+        return np.array([0, height, 0, width], dtype=np.int64)
+    (row_start, row_stop, _), (col_start, col_stop, _) = region[0].indices(height), region[1].indices(width)
+    return np.array([row_start, row_stop, col_start, col_stop], dtype=np.int64)
 
 
 def max_weight_in_region(
@@ -119,8 +133,9 @@ def max_weight_in_region(
     depth_array = _array(depths)
     depth_keys = depth_array.view(np.uint32 if depth_array.itemsize == 4 else np.uint64)
     offsets, tile_gaussians = kernels.bin_gaussians(
-        _array(means2d), _array(extents), depth_keys, 8 * depth_array.itemsize, _array(drawn), width, height, TILE_SIZE
-    )
+        _array(means2d), _array(extents), depth_keys, 8 * depth_array.itemsize, _array(drawn), width, height, TILE_SIZE,
+        _region_bounds(None, width, height),
+    )  # fmt: skip
     per_intersection = kernels.max_pixel_weights(
         _array(means2d), _array(conics), _array(opacities), offsets, tile_gaussians, _array(region), TILE_SIZE
     )

@@ -108,11 +108,12 @@ def depth_order(depth_keys, drawn, key_bits):
 
 
 @njit(cache=True)
-def bin_gaussians(means2d, extents, depth_keys, key_bits, drawn, width, height, tile_size):
+def bin_gaussians(means2d, extents, depth_keys, key_bits, drawn, width, height, tile_size, region):
     """Assign Gaussians to the tiles their ellipse bounding box touches, depth-sorted per tile.
 
     means2d: (N, 2) pixels; extents: (N, 2) half-widths of the bounding box, pixels;
-    depth_keys, key_bits: camera z as for `depth_order`; drawn: (N,) bool.
+    depth_keys, key_bits: camera z as for `depth_order`; drawn: (N,) bool;
+    region: (row_start, row_stop, col_start, col_stop) pixels; only tiles it touches get Gaussians.
     Returns tile_offsets (n_tiles + 1,) int64 and tile_gaussians (n_intersections,) int32, where the
     Gaussians of tile t, nearest first (stable for equal depths), are
     tile_gaussians[tile_offsets[t]:tile_offsets[t + 1]].
@@ -125,10 +126,10 @@ def bin_gaussians(means2d, extents, depth_keys, key_bits, drawn, width, height, 
     for g in range(n):
         if not drawn[g]:
             continue
-        x0 = max(math.ceil(means2d[g, 0] - extents[g, 0] - 0.5), 0)
-        x1 = min(math.floor(means2d[g, 0] + extents[g, 0] - 0.5), width - 1)
-        y0 = max(math.ceil(means2d[g, 1] - extents[g, 1] - 0.5), 0)
-        y1 = min(math.floor(means2d[g, 1] + extents[g, 1] - 0.5), height - 1)
+        x0 = max(math.ceil(means2d[g, 0] - extents[g, 0] - 0.5), region[2])
+        x1 = min(math.floor(means2d[g, 0] + extents[g, 0] - 0.5), region[3] - 1)
+        y0 = max(math.ceil(means2d[g, 1] - extents[g, 1] - 0.5), region[0])
+        y1 = min(math.floor(means2d[g, 1] + extents[g, 1] - 0.5), region[1] - 1)
         if x0 > x1 or y0 > y1:
             continue
         rects[g, 0] = x0 // tile_size
@@ -159,12 +160,13 @@ def tile_schedule(tile_offsets):
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
 def rasterize_forward(
     means2d, conics, opacities, features, background, spans, tile_offsets, tile_gaussians, schedule,
-    width, height, tile_size, n_threads,
+    width, height, tile_size, n_threads, region,
 ):  # fmt: skip
     """Front-to-back compositing of the binned Gaussians.
 
     means2d (N, 2), conics (N, 3), opacities (N,), features (N, C), background (C,),
-    spans (N, 4) from `gaussian_spans`.
+    spans (N, 4) from `gaussian_spans`; region as for `bin_gaussians`: pixels outside it are not
+    composited (background, transmittance 1, no Gaussian).
     Returns image (H, W, C), transmittance (H, W) left after the last Gaussian, last (H, W) int32
     index into tile_gaussians of the last Gaussian that contributed (-1: none), and
     intersection_weights (n_intersections,) = sum over the tile's pixels of T * alpha.
@@ -191,8 +193,12 @@ def rasterize_forward(
             tile_T[:] = 1.0
             tile_color[:] = 0.0
             tile_last[:] = -1
-            tile_done[:] = False
-            remaining = (x1 - x0 + 1) * (y1 - y0 + 1)
+            remaining = 0
+            for y in range(y0, y1 + 1):
+                for x in range(x0, x1 + 1):
+                    inside = region[0] <= y < region[1] and region[2] <= x < region[3]
+                    tile_done[(y - y0) * tile_size + (x - x0)] = not inside
+                    remaining += inside
             for j in range(tile_offsets[t], tile_offsets[t + 1]):
                 if remaining == 0:
                     break

@@ -49,6 +49,7 @@ def rasterization(
     near_plane: float = 0.01,
     far_plane: float = 1e10,
     eps2d: float = 0.3,
+    region: tuple[slice, slice] | None = None,
     backend: str = "auto",
 ) -> RenderOutput:
     """Render Gaussians into one camera; differentiable w.r.t. every Gaussian parameter.
@@ -58,6 +59,9 @@ def rasterization(
     colors: (N, C) per-Gaussian features of any channel count when sh_degree is None, else
     (N, K, 3) SH coefficients with K >= (sh_degree + 1)^2, evaluated for the view direction;
     background: (C,) colour behind the Gaussians, default zeros.
+    region: (rows, cols) slices of the pixels a caller reads, e.g. a loss's crop (default: all). Outside
+    it the image is the background with alpha 0 and no gradient; the CPU backend composites nothing
+    there (its `visibility` then counts the region's pixels alone; read visibility without a region).
     backend: "cpu" (numba kernels), "cuda" (gsplat) or "auto" (cuda for CUDA tensors).
     """
     if backend == "auto":
@@ -65,10 +69,11 @@ def rasterization(
     if backend == "cuda":
         from avatarperfect_cli.render.gsplat_backend import rasterization_gsplat
 
-        return rasterization_gsplat(
+        out = rasterization_gsplat(
             means, quats, scales, opacities, colors, camera, sh_degree=sh_degree, background=background,
             render_depth=render_depth, near_plane=near_plane, far_plane=far_plane, eps2d=eps2d,
         )  # fmt: skip
+        return out if region is None else _outside_region_cleared(out, region, background)
     if backend != "cpu":
         raise ValueError(f"unknown backend '{backend}': use auto, cpu or cuda")
 
@@ -86,7 +91,7 @@ def rasterization(
         background = torch.cat([background.to(means.dtype), background.new_zeros(1)])
     image, alpha, visibility = rasterize_to_pixels(
         projection.means2d, projection.conics, opacities, features, background.to(means.dtype),
-        projection.extents, projection.depths, projection.drawn, camera.width, camera.height,
+        projection.extents, projection.depths, projection.drawn, camera.width, camera.height, region,
     )  # fmt: skip
     depth = None
     if render_depth:
@@ -95,3 +100,18 @@ def rasterization(
     return RenderOutput(
         image, alpha, depth, visibility, projection.means2d, projection.radii, camera.width, camera.height
     )
+
+
+def _outside_region_cleared(out: RenderOutput, region: tuple[slice, slice], background: torch.Tensor | None) -> RenderOutput:
+    """`out` with the pixels outside `region` set to the background (alpha 0, depth 0), as the CPU
+    backend leaves them. The visibility keeps every pixel's share: the CUDA backend composites them all."""
+    inside = torch.zeros_like(out.alpha, dtype=torch.bool)
+    inside[region] = True
+    fill = torch.zeros(out.image.shape[-1], dtype=out.image.dtype, device=out.image.device)
+    if background is not None:
+        fill = background.to(out.image)
+    out.image = torch.where(inside[..., None], out.image, fill)
+    out.alpha = torch.where(inside, out.alpha, torch.zeros_like(out.alpha))
+    if out.depth is not None:
+        out.depth = torch.where(inside, out.depth, torch.zeros_like(out.depth))
+    return out

@@ -126,7 +126,7 @@ def train(
                     body_pose, transl = pose_refiner.pose(index, body_pose, transl, step)
             background = torch.rand(3).to(device)
             target = torch.where(view.foreground[rows, cols, None], view.image[rows, cols], background)
-            out = render_avatar(avatar, body_pose, transl, view.camera, background)
+            out = render_avatar(avatar, body_pose, transl, view.camera, background, region=(rows, cols))
             mask = None if view.loss_mask is None else view.loss_mask[rows, cols]
             loss = image_loss(out.image[rows, cols], target, mask, config.ssim_weight)
 

@@ -27,7 +27,12 @@ def test_binning_lists_each_touched_tile_nearest_first():
     extents = np.array([[2.0, 2.0], [2.0, 2.0], [3.0, 3.0]])
     depths = np.array([3.0, 1.0, 2.0])
     drawn = np.ones(3, dtype=np.bool_)
-    offsets, tile_gaussians = kernels.bin_gaussians(means2d, extents, depths.view(np.uint64), 64, drawn, 32, 32, 16)
+    everywhere = np.array([0, 32, 0, 32])
+    offsets, tile_gaussians = kernels.bin_gaussians(means2d, extents, depths.view(np.uint64), 64, drawn, 32, 32, 16, everywhere)
     lists = [list(tile_gaussians[offsets[t] : offsets[t + 1]]) for t in range(4)]
     # Tiles (0,0) (1,0) (0,1) (1,1); Gaussian 2 straddles all four, Gaussian 1 is nearest.
     assert lists == [[2, 0], [1, 2], [2], [2]]
+    top_left = np.array([0, 15, 0, 15])  # rows and columns 0..14: only tile (0,0), and Gaussian 2 reaches it
+    offsets, tile_gaussians = kernels.bin_gaussians(means2d, extents, depths.view(np.uint64), 64, drawn, 32, 32, 16, top_left)
+    lists = [list(tile_gaussians[offsets[t] : offsets[t + 1]]) for t in range(4)]
+    assert lists == [[2, 0], [], [], []]

@@ -106,6 +106,27 @@ def test_gradients_of_a_masked_loss_match_reference():
         assert relative_error(grad, expected) <= 1e-6, name
 
 
+def test_region_composites_only_its_pixels_with_the_full_images_values_and_gradients():
+    camera = make_camera(53, 41)
+    params = [p.requires_grad_() for p in make_scene(7, 60)]
+    background = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)
+    rows, cols = slice(5, 30), slice(18, 47)  # not aligned with the 16-px tiles
+    full = rasterization(*params, camera, background=background)
+    cropped = rasterization(*params, camera, background=background, region=(rows, cols))
+    torch.testing.assert_close(cropped.image[rows, cols], full.image[rows, cols], rtol=0, atol=0)
+    torch.testing.assert_close(cropped.alpha[rows, cols], full.alpha[rows, cols], rtol=0, atol=0)
+    outside = torch.ones(41, 53, dtype=torch.bool)
+    outside[rows, cols] = False
+    assert full.alpha[outside].max() > 0.5, "the scene should cover pixels outside the region"
+    assert (cropped.alpha[outside] == 0).all() and (cropped.image[outside] == background).all()
+    weights = torch.randn(full.image.shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    full_grads = torch.autograd.grad((full.image[rows, cols] * weights[rows, cols]).sum(), params)
+    cropped_grads = torch.autograd.grad((cropped.image * weights).sum(), params)  # outside: a constant
+    for name, grad, expected in zip(["means", "quats", "scales", "opacities", "colors"], cropped_grads, full_grads):
+        assert expected.abs().max() > 0, name
+        torch.testing.assert_close(grad, expected, rtol=1e-12, atol=1e-14)
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_gradients_match_reference_float32(seed):
     camera = make_camera(33, 27)
