@@ -9,11 +9,19 @@ from avatarperfect_cli.render import Camera, RenderOutput, rasterization
 
 
 def render_avatar(
-    avatar: Avatar, body_pose: torch.Tensor, transl: torch.Tensor, camera: Camera, background: torch.Tensor
+    avatar: Avatar,
+    body_pose: torch.Tensor,
+    transl: torch.Tensor,
+    camera: Camera,
+    background: torch.Tensor,
+    transforms: torch.Tensor | None = None,
 ) -> RenderOutput:
     """Pose the avatar (body_pose (24, 3) axis-angle, transl (3,) metres) and render it with its
-    active SH degree over `background` (3,). Differentiable w.r.t. the avatar and the pose."""
-    means, quats = avatar.pose(body_pose, transl)
+    active SH degree over `background` (3,). Differentiable w.r.t. the avatar and the pose.
+    transforms: the pose's `avatar.joint_transforms(body_pose, transl)`, when the caller kept them."""
+    if transforms is None:
+        transforms = avatar.joint_transforms(body_pose, transl)
+    means, quats = avatar.skin(transforms)
     return rasterization(
         means, quats, avatar.scales, avatar.opacities, avatar.sh, camera,
         sh_degree=avatar.active_sh_degree, background=background,

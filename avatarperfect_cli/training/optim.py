@@ -63,9 +63,13 @@ class LearningRates:
 def create_optimizers(
     params: Mapping[str, torch.nn.Parameter], rates: LearningRates, step: int = 0
 ) -> dict[str, torch.optim.Adam]:
-    """One Adam (a single param group holding a single parameter) per named parameter, at `step`'s rates."""
+    """One Adam (a single param group holding a single parameter) per named parameter, at `step`'s rates;
+    on CUDA the fused implementation (one kernel per step instead of a dozen)."""
     return {
-        name: torch.optim.Adam([{"params": [param], "lr": rates.at(name, step), "name": name}], eps=ADAM_EPS)
+        name: torch.optim.Adam(
+            [{"params": [param], "lr": rates.at(name, step), "name": name}], eps=ADAM_EPS,
+            fused=True if param.device.type == "cuda" else None,
+        )  # fmt: skip
         for name, param in params.items()
     }
 
