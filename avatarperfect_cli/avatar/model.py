@@ -197,10 +197,21 @@ class Avatar:
         The pose tensors may live on any device; they are moved (differentiably) to the avatar's.
         Returns world-frame means (N, 3) and quats (N, 4) w x y z, on the avatar's device.
         """
+        return self.skin(self.joint_transforms(body_pose, transl, world_transform))
+
+    def joint_transforms(
+        self, body_pose: torch.Tensor, transl: torch.Tensor, world_transform: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """(24, 4, 4) joint transforms of a pose (see `pose`) on the avatar's device; they depend on the pose
+        and `rest_joints` only, so a caller that poses the avatar alike many times may keep them."""
         body_pose, transl = body_pose.to(self.device), transl.to(self.device)
         transforms = forward_kinematics(body_pose[None], self.rest_joints, transl[None])[0]
         if world_transform is not None:
             transforms = world_transform.to(self.device) @ transforms
+        return transforms
+
+    def skin(self, transforms: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """World-frame means (N, 3) and quats (N, 4) for `joint_transforms`' (24, 4, 4) result."""
         return skin_gaussians(self.params["means"], self.params["quats"], self.skin_weights, transforms)
 
     def to(self, device: torch.device | str) -> Avatar:

@@ -15,11 +15,15 @@ def render_avatar(
     camera: Camera,
     background: torch.Tensor,
     region: tuple[slice, slice] | None = None,
+    transforms: torch.Tensor | None = None,
 ) -> RenderOutput:
     """Pose the avatar (body_pose (24, 3) axis-angle, transl (3,) metres) and render it with its
     active SH degree over `background` (3,); `region` as in `rasterization`. Differentiable w.r.t. the
-    avatar and the pose."""
-    means, quats = avatar.pose(body_pose, transl)
+    avatar and the pose.
+    transforms: the pose's `avatar.joint_transforms(body_pose, transl)`, when the caller kept them."""
+    if transforms is None:
+        transforms = avatar.joint_transforms(body_pose, transl)
+    means, quats = avatar.skin(transforms)
     return rasterization(
         means, quats, avatar.scales, avatar.opacities, avatar.sh, camera,
         sh_degree=avatar.active_sh_degree, background=background, region=region,

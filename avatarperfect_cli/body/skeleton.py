@@ -5,6 +5,8 @@ Conventions: rotations act on column vectors; quaternions are (w, x, y, z); leng
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 import torch
@@ -263,113 +265,132 @@ class _SkinGaussians(torch.autograd.Function):
         return tuple(torch.from_numpy(grad).to(device) for grad in grads)
 
 
-# The torch path (any device) stores 3x3 matrices entries first, (3, 3, N): every operation then runs on
-# contiguous length-N vectors (on the CPU, ops on (N, 3, 3) such as linalg.cross are ~10x slower).
+# The torch path (any device, CUDA in practice) works on batched (N, 3, 3) and (N, 4, 4) tensors inside one
+# autograd Function with the numba kernel's closed-form backward: on a GPU the time of this path is the
+# count of kernel launches (a few dozen here; per-entry formulas under autograd took about a thousand).
+
+# table[k] lists, for the quaternion branch k, which of (t0..t3, (R - R^T) flattened, (R + R^T) flattened)
+# make up 2 sqrt(t_k) times the quaternion (the numba `_rotation_to_quaternion`'s four formulas)
+_QUATERNION_TABLE = ((0, 11, 6, 7), (11, 1, 16, 15), (6, 16, 2, 20), (7, 15, 20, 3))
+# L(a) b = a * b (Hamilton) with L(a)[i, j] = sign[i][j] * a[index[i][j]]
+_HAMILTON_INDEX = ((0, 1, 2, 3), (1, 0, 3, 2), (2, 3, 0, 1), (3, 2, 1, 0))
+_HAMILTON_SIGN = ((1, -1, -1, -1), (1, 1, -1, 1), (1, 1, 1, -1), (1, -1, 1, 1))
+_CONJUGATE = (1, -1, -1, -1)
+_CONSTANTS: dict[tuple[torch.device, torch.dtype], tuple[torch.Tensor, ...]] = {}
 
 
-def _cross(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """Cross products of (3, ...) vectors (components first)."""
-    return torch.stack([u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]])
+def _constants(device: torch.device, dtype: torch.dtype) -> tuple[torch.Tensor, ...]:
+    """The tables above as tensors on `device` (made once per device and dtype: no copies per call)."""
+    key = (device, dtype)
+    if key not in _CONSTANTS:
+        _CONSTANTS[key] = (
+            torch.tensor(_QUATERNION_TABLE, device=device),
+            torch.tensor(_HAMILTON_INDEX, device=device),
+            torch.tensor(_HAMILTON_SIGN, dtype=dtype, device=device),
+            torch.tensor(_CONJUGATE, dtype=dtype, device=device),
+        )
+    return _CONSTANTS[key]
 
 
-def _cofactors(m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(3, 3, ...) entries first -> cofactor matrices (3, 3, ...) (rows: cross products of the other two rows)
-    and determinants (...); M^-T = cofactors / det."""
-    cofactors = torch.stack([_cross(m[1], m[2]), _cross(m[2], m[0]), _cross(m[0], m[1])])
-    return cofactors, (m[0] * cofactors[0]).sum(0)
+def _cofactors_batched(m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N, 3, 3) -> cofactor matrices (N, 3, 3) (rows: cross products of the other two rows) and
+    determinants (N,); M^-T = cofactors / det."""
+    cofactors = torch.linalg.cross(m.roll(-1, dims=1), m.roll(-2, dims=1), dim=-1)
+    return cofactors, (m[:, 0] * cofactors[:, 0]).sum(-1)
 
 
-@torch.no_grad()
-def _polar_rotation_torch(matrices: torch.Tensor) -> torch.Tensor:
-    """(3, 3, ...) entries first, M = R S (S symmetric positive) -> rotation factors R (3, 3, ...); no gradient.
-
-    The numba `_polar_rotation` batched: scaled Newton steps X <- (g X + X^-T / g) / 2 until no entry of
-    any matrix changes by more than the dtype's tolerance; a negative determinant gives -R.
-    """
-    tolerance = _POLAR_TOLERANCE[matrices.dtype]
-    x = matrices.contiguous()
-    change = torch.full(x.shape[2:], torch.inf, dtype=x.dtype, device=x.device)
+def _polar_rotation_batched(linear: torch.Tensor) -> torch.Tensor:
+    """(N, 3, 3) M = R S (S symmetric positive) -> rotation factors R (N, 3, 3); the numba `_polar_rotation`
+    batched: scaled Newton steps X <- (g X + X^-T / g) / 2, each matrix scaled while its last step changed
+    an entry by more than _POLAR_SCALING_CHANGE, until no entry of any matrix changes by more than the
+    dtype's tolerance; a negative determinant gives -R."""
+    tolerance = _POLAR_TOLERANCE[linear.dtype]
+    x = linear.contiguous()
+    change = torch.full(x.shape[:1], torch.inf, dtype=x.dtype, device=x.device)
+    det = torch.ones_like(change)
+    largest_change = math.inf
     for _ in range(_POLAR_MAX_ITERATIONS):
-        cofactors, det = _cofactors(x)
+        cofactors, det = _cofactors_batched(x)
         det = torch.where(det.abs() < _TINY_DETERMINANT, _TINY_DETERMINANT, det)
-        frobenius_ratio = torch.sqrt(cofactors.square().sum((0, 1)) / x.square().sum((0, 1)))
-        gamma = torch.where(change > _POLAR_SCALING_CHANGE, torch.sqrt(frobenius_ratio / det.abs()), 1.0)
-        step = 0.5 * (gamma * x + cofactors / (gamma * det))
-        change = (step - x).abs().amax((0, 1))
+        if largest_change > _POLAR_SCALING_CHANGE:  # else every gamma is 1: skip the launches
+            ratio = torch.sqrt(cofactors.square().sum((1, 2)) / x.square().sum((1, 2)))
+            gamma = torch.where(change > _POLAR_SCALING_CHANGE, torch.sqrt(ratio / det.abs()), 1.0)
+            step = torch.addcmul(0.5 * gamma[:, None, None] * x, cofactors, (0.5 / (gamma * det))[:, None, None])
+        else:
+            step = torch.addcmul(0.5 * x, cofactors, (0.5 / det)[:, None, None])
+        change = (step - x).abs().amax((1, 2))
         x = step
-        if not change.numel() or change.max() < tolerance:
+        largest_change = float(change.max()) if change.numel() else 0.0  # the one wait for the GPU per step
+        if largest_change < tolerance:
             break
-    return x * det.sign()  # det is never 0 here
+    return x * det.sign()[:, None, None]  # det is never 0 here
 
 
-def _differentiable_polar_rotation(linear: torch.Tensor) -> torch.Tensor:
-    """(3, 3, ...) entries first, M -> its rotation factor R (3, 3, ...) with the exact derivative for autograd.
-
-    R comes from the Newton iteration without a graph. Differentiating M = R S gives dR = R [w]x with
-    (tr(S) I - sym S) w = vee(R^T dM - dM^T R), so R + R [w]x - stopgrad(R [w]x), w computed from the live M,
-    has R's value and R's derivative (the numba backward's formula) without differentiating the iteration.
-    """
-    rotation = _polar_rotation_torch(linear.detach())
-    if not linear.requires_grad:
-        return rotation
-    stretch = (rotation[:, :, None] * linear[:, None, :]).sum(0)  # R^T M, with the graph
-    fixed = stretch.detach()
-    trace = fixed[0, 0] + fixed[1, 1] + fixed[2, 2]
-    eye = torch.eye(3, dtype=linear.dtype, device=linear.device).reshape((3, 3) + (1,) * (linear.dim() - 2))
-    k_cofactors, k_det = _cofactors(eye * trace - 0.5 * (fixed + fixed.transpose(0, 1)))  # symmetric
-    k_det = torch.where(k_det.abs() < _TINY_DETERMINANT, torch.inf, k_det)
-    vee = torch.stack([stretch[2, 1] - stretch[1, 2], stretch[0, 2] - stretch[2, 0], stretch[1, 0] - stretch[0, 1]])
-    omega = (k_cofactors * vee[None]).sum(1) / k_det
-    turn = torch.stack([_cross(row, omega) for row in rotation])  # row i of R [w]x is r_i x w
-    return rotation + (turn - turn.detach())
-
-
-def _rotation_to_quaternion_torch(rotations: torch.Tensor) -> torch.Tensor:
-    """(3, 3, ...) entries first, rotations -> (4, ...) unit quaternions w x y z, w >= 0; differentiable.
-
-    The numba `_rotation_to_quaternion` batched: row k of the symmetric 4x4 table below is 2 sqrt(t_k) times
-    the quaternion; it uses the row with the largest diagonal t_k (the first on ties), picked by 0/1 masks
-    (a gather or argmax across the 4 rows is far slower on the CPU).
-    """
+def _rotation_to_quaternion_batched(rotations: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
+    """(N, 3, 3) rotations -> (N, 4) unit quaternions w x y z, w >= 0, by the numba `_rotation_to_quaternion`'s
+    branch: the formula of the largest t_k (the first on ties)."""
     r = rotations
-    r00, r11, r22 = r[0, 0], r[1, 1], r[2, 2]
-    t0, t1, t2, t3 = 1 + r00 + r11 + r22, 1 + r00 - r11 - r22, 1 - r00 + r11 - r22, 1 - r00 - r11 + r22
-    xw, yw, zw = r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]
-    xy, xz, yz = r[1, 0] + r[0, 1], r[0, 2] + r[2, 0], r[2, 1] + r[1, 2]
-    first = (t0 >= t1) & (t0 >= t2) & (t0 >= t3)
-    second = ~first & (t1 >= t2) & (t1 >= t3)
-    third = ~first & ~second & (t2 >= t3)
-    fourth = ~(first | second | third)
-    table = [(t0, xw, yw, zw), (xw, t1, xy, xz), (yw, xy, t2, yz), (zw, xz, yz, t3)]
-    masks = [mask.to(r.dtype) for mask in (first, second, third, fourth)]
-    row = torch.stack([sum(mask * entries[c] for mask, entries in zip(masks, table)) for c in range(4)])
-    sign_over_norm = torch.where(row[0] < 0, -1.0, 1.0).to(r.dtype) / torch.sqrt((row * row).sum(0))
-    return row * sign_over_norm
+    r00, r11, r22 = r[:, 0, 0], r[:, 1, 1], r[:, 2, 2]
+    t = torch.stack([1 + r00 + r11 + r22, 1 + r00 - r11 - r22, 1 - r00 + r11 - r22, 1 - r00 - r11 + r22], dim=-1)
+    source = torch.cat([t, (r - r.mT).flatten(1), (r + r.mT).flatten(1)], dim=1)
+    row = source.gather(1, table[t.argmax(dim=1)])
+    sign = torch.where(row[:, :1] < 0, -1.0, 1.0).to(r.dtype)
+    return row * (sign / torch.sqrt((row * row).sum(1, keepdim=True)))
 
 
-def _quaternion_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Hamilton products a * b of (..., 4) quaternions w x y z."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        dim=-1,
-    )
+def _hamilton_matrices(a: torch.Tensor, index: torch.Tensor, sign: torch.Tensor) -> torch.Tensor:
+    """(N, 4) quaternions a -> (N, 4, 4) matrices L(a) with L(a) b = a * b."""
+    return a[:, index] * sign
+
+
+class _SkinGaussiansTorch(torch.autograd.Function):
+    """`_SkinGaussians` in torch on any device: (blended (N, 3, 4), means (N, 3), quats (N, 4)) -> posed means
+    (N, 3), posed quats (N, 4), with the numba kernel's closed-form backward (`_skin_gaussians_backward`)."""
+
+    @staticmethod
+    def forward(ctx, blended: torch.Tensor, means: torch.Tensor, quats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        table, index, sign, conjugate = _constants(blended.device, blended.dtype)
+        linear = blended[..., :3]
+        posed_means = torch.baddbmm(blended[..., 3:], linear, means[..., None])[..., 0]
+        rotations = _polar_rotation_batched(linear)
+        rotation_quats = _rotation_to_quaternion_batched(rotations, table)
+        posed_quats = torch.bmm(_hamilton_matrices(rotation_quats, index, sign), quats.to(blended.dtype)[..., None])[..., 0]
+        ctx.save_for_backward(linear, means, quats, rotations, rotation_quats)
+        return posed_means.to(means.dtype), posed_quats.to(quats.dtype)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_means: torch.Tensor, grad_quats: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        linear, means, quats, rotations, rotation_quats = ctx.saved_tensors
+        _, index, sign, conjugate = _constants(linear.device, linear.dtype)
+        gm = torch.zeros_like(means) if grad_means is None else grad_means.to(linear.dtype)
+        g = torch.zeros_like(quats) if grad_quats is None else grad_quats.to(linear.dtype)
+        grad_in_means = torch.bmm(linear.mT, gm[..., None])[..., 0]
+        # posed = r * q: dq = conj(r) * g; dr = g * conj(q); the turn w (dR = R [w]x) gets vec(conj(r) * dr) / 2
+        by_conjugate_rotation = _hamilton_matrices(rotation_quats * conjugate, index, sign)
+        grad_in_quats = torch.bmm(by_conjugate_rotation, g[..., None])[..., 0]
+        conjugate_quats = quats.to(linear.dtype) * conjugate
+        grad_rotation_quats = torch.bmm(_hamilton_matrices(g, index, sign), conjugate_quats[..., None])
+        omega = 0.5 * torch.bmm(by_conjugate_rotation, grad_rotation_quats)[:, 1:, 0]
+        # L = R S: (tr(S) I - sym S) h = omega, and the gradient w.r.t. L is R [h]x (row i: r_i x h)
+        stretch = torch.bmm(rotations.mT, linear)
+        trace = stretch.diagonal(dim1=1, dim2=2).sum(-1)
+        eye = torch.eye(3, dtype=linear.dtype, device=linear.device)
+        k = trace[:, None, None] * eye - 0.5 * (stretch + stretch.mT)
+        k_cofactors, k_det = _cofactors_batched(k)  # symmetric
+        k_det = torch.where(k_det.abs() < _TINY_DETERMINANT, torch.inf, k_det)
+        h = torch.bmm(k_cofactors, omega[..., None])[..., 0] / k_det[:, None]
+        grad_linear = torch.linalg.cross(rotations, h[:, None, :].expand_as(rotations), dim=-1)
+        grad_linear = torch.baddbmm(grad_linear, gm[..., None], means.to(linear.dtype)[:, None, :])
+        grad_blended = torch.cat([grad_linear, gm[..., None]], dim=-1)
+        return grad_blended, grad_in_means.to(means.dtype), grad_in_quats.to(quats.dtype)
 
 
 def _skin_blended_torch(
     blended: torch.Tensor, means: torch.Tensor, quats: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """`_SkinGaussians` in torch on any device, differentiable by autograd: (N, 3, 4), (N, 3), (N, 4) ->
-    posed means (N, 3), posed quats (N, 4)."""
-    posed_means = (blended[..., :3] * means[..., None, :]).sum(-1) + blended[..., 3]
-    rotation_quats = _rotation_to_quaternion_torch(_differentiable_polar_rotation(blended[..., :3].permute(1, 2, 0)))
-    return posed_means, _quaternion_multiply(rotation_quats.mT, quats)
+    """`_SkinGaussians` in torch on any device: (N, 3, 4), (N, 3), (N, 4) -> posed means (N, 3), posed quats (N, 4)."""
+    return _SkinGaussiansTorch.apply(blended, means, quats)
 
 
 def _tree_levels(parents: tuple[int, ...]) -> tuple[list[list[int]], list[list[int]], list[int]]:

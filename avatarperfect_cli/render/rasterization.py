@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
 
 import torch
 
@@ -12,27 +12,40 @@ from avatarperfect_cli.render.cpu import rasterize_to_pixels
 from avatarperfect_cli.render.projection import project_gaussians
 
 
-@dataclass
 class RenderOutput:
     """What one render returns.
 
     image:      (H, W, C) composited features over the background
     alpha:      (H, W) accumulated opacity, 1 - final transmittance
     depth:      (H, W) expected camera z, metres (sum T*alpha*z / alpha), or None; 0 where alpha = 0
-    visibility: (N,) sum over pixels of T * alpha per Gaussian (paper's v_i^I), not differentiable
+    visibility: (N,) sum over pixels of T * alpha per Gaussian (paper's v_i^I), not differentiable.
+                May be given as a function of no arguments: it is then called on the first read (the CUDA
+                backend computes it with an extra pass, which training never needs)
     means2d:    (N, 2) projected centres, pixels; call .retain_grad() before backward to read the
                 screen-space gradient used by densification
     radii:      (N,) int32 footprint radius, pixels; 0 where the Gaussian was not drawn
     """
 
-    image: torch.Tensor
-    alpha: torch.Tensor
-    depth: torch.Tensor | None
-    visibility: torch.Tensor
-    means2d: torch.Tensor
-    radii: torch.Tensor
-    width: int
-    height: int
+    def __init__(
+        self,
+        image: torch.Tensor,
+        alpha: torch.Tensor,
+        depth: torch.Tensor | None,
+        visibility: torch.Tensor | Callable[[], torch.Tensor],
+        means2d: torch.Tensor,
+        radii: torch.Tensor,
+        width: int,
+        height: int,
+    ) -> None:
+        self.image, self.alpha, self.depth = image, alpha, depth
+        self._visibility = visibility
+        self.means2d, self.radii, self.width, self.height = means2d, radii, width, height
+
+    @property
+    def visibility(self) -> torch.Tensor:
+        if callable(self._visibility):
+            self._visibility = self._visibility()
+        return self._visibility
 
 
 def rasterization(

@@ -40,8 +40,9 @@ class TrainingProgress:
     ) -> None:
         self.progress.__exit__(kind, error, trace)
 
-    def update(self, loss: float, image: torch.Tensor, target: torch.Tensor, count: int) -> None:
+    def update(self, loss: float | torch.Tensor, image: torch.Tensor, target: torch.Tensor, count: int) -> None:
+        """`loss` may be a 0-d tensor: it is read (a wait for the GPU) only on the steps that refresh."""
         self.steps += 1
         if self.enabled and (self.steps % REFRESH_EVERY == 0 or self.steps == 1):
-            self.progress.update(self.task, advance=0, loss=loss, psnr=psnr(image, target), count=count)
+            self.progress.update(self.task, advance=0, loss=float(loss), psnr=psnr(image, target), count=count)
         self.progress.advance(self.task)

@@ -177,9 +177,10 @@ class DensifyStrategy:
             state.visible_count = grad.new_zeros(n)
         ndc_scale = grad.new_tensor([render_output.width / 2.0, render_output.height / 2.0])
         norms = (grad * ndc_scale).norm(dim=-1)
+        # masks rather than boolean indexing: indexing waits for the GPU to count the selected rows
         visible = render_output.radii > 0
-        state.grad_norm_sum[visible] += norms[visible]
-        state.visible_count[visible] += 1
+        state.grad_norm_sum += torch.where(visible, norms, 0.0)
+        state.visible_count += visible
 
     @torch.no_grad()
     def _refine(

@@ -81,6 +81,17 @@ def _supervised_region(view: TrainingView, margin: int) -> tuple[slice, slice]:
     return subject_bbox(view.foreground if view.loss_mask is None else view.loss_mask, margin)
 
 
+def _kept_transforms(
+    kept: dict[tuple[str, int], torch.Tensor], key: tuple[str, int], avatar: Avatar, body_pose: torch.Tensor, transl: torch.Tensor
+) -> torch.Tensor:
+    """The avatar's joint transforms for a view's fixed pose, computed on its first draw (forward kinematics
+    is a few dozen small operations, which on a GPU cost more than the skinning itself)."""
+    if key not in kept:
+        with torch.no_grad():
+            kept[key] = avatar.joint_transforms(body_pose, transl)
+    return kept[key]
+
+
 def train(
     avatar: Avatar,
     video: Sequence[TrainingView],
@@ -109,24 +120,29 @@ def train(
     state = strategy.initialize_state()
     regions = [_supervised_region(view, config.bbox_margin) for view in video]
     edit_regions = [_supervised_region(view, config.bbox_margin) for view in edits]
+    kept: dict[tuple[str, int], torch.Tensor] = {}  # joint transforms of the fixed poses (rest_joints are fixed)
     with TrainingProgress(config.iterations, enabled=progress) as bar:
         for step in range(config.iterations):
             if step > 0 and step % config.sh_degree_interval == 0:
                 avatar.active_sh_degree = min(avatar.active_sh_degree + 1, avatar.sh_degree)
             set_learning_rates(optimizers, rates, step)
+            transforms = None
             if edits and chooser.random() < config.edit_probability:
                 index = chooser.randrange(len(edits))
                 view, (rows, cols) = edits[index], edit_regions[index]
                 body_pose, transl = view.body_pose, view.transl
+                transforms = _kept_transforms(kept, ("edit", index), avatar, body_pose, transl)
             else:
                 index = chooser.randrange(len(video))
                 view, (rows, cols) = video[index], regions[index]
                 body_pose, transl = view.body_pose, view.transl
                 if pose_refiner is not None:
                     body_pose, transl = pose_refiner.pose(index, body_pose, transl, step)
+                else:
+                    transforms = _kept_transforms(kept, ("video", index), avatar, body_pose, transl)
             background = torch.rand(3).to(device)
             target = torch.where(view.foreground[rows, cols, None], view.image[rows, cols], background)
-            out = render_avatar(avatar, body_pose, transl, view.camera, background, region=(rows, cols))
+            out = render_avatar(avatar, body_pose, transl, view.camera, background, region=(rows, cols), transforms=transforms)
             mask = None if view.loss_mask is None else view.loss_mask[rows, cols]
             loss = image_loss(out.image[rows, cols], target, mask, config.ssim_weight)
 
@@ -138,5 +154,5 @@ def train(
             if pose_refiner is not None:
                 pose_refiner.step(step)
             strategy.step_post_backward(avatar.params, optimizers, state, step, out)
-            bar.update(loss=loss.item(), image=out.image[rows, cols].detach(), target=target, count=len(avatar))
+            bar.update(loss=loss.detach(), image=out.image[rows, cols].detach(), target=target, count=len(avatar))
     return avatar

@@ -378,3 +378,16 @@ def test_torch_skinning_matches_numba_on_degenerate_blends_and_every_quaternion_
         dim=-1,
     ) / quats[:8].norm(dim=-1, keepdim=True) ** 2  # fmt: skip
     torch.testing.assert_close(rotation_quats, matrix_to_quaternion(transforms[:8, :3, :3]))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize(("dtype", "tolerance"), [(torch.float32, 1e-5), (torch.float64, 1e-10)])
+def test_torch_skinning_on_cuda_matches_numba_forward_and_backward(dtype: torch.dtype, tolerance: float) -> None:
+    inputs = _skinning_case(3000, dtype, 10)  # the case the CPU test above checks the torch path on
+    generator = torch.Generator().manual_seed(10)
+    upstream = (torch.randn(3000, 3, generator=generator).to(dtype), torch.randn(3000, 4, generator=generator).to(dtype))
+    expected = _skin_with_gradients(inputs, "numba", upstream)
+    actual = _skin_with_gradients([t.cuda() for t in inputs], "auto", tuple(u.cuda() for u in upstream))
+    for value, reference in zip(actual, expected):
+        assert value.is_cuda
+        _assert_close_relative(value.cpu(), reference, tolerance)
