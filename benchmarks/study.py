@@ -1,6 +1,7 @@
 """The paper's user study (Table 2), reproduced with a simulated user on synthetic subjects.
 
     python benchmarks/study.py OUT_DIR [--presets default female tall] [--rounds 5] [--resolution 512]
+                               [--conditions initial ap-exact ...]
 
 For each subject (a make-sample preset) one initial avatar is trained (2000 iterations), then every
 condition runs `--rounds` rounds on its own copy of it:
@@ -27,6 +28,7 @@ import math
 import shutil
 import statistics
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -200,7 +202,7 @@ def run_condition(name: str, initial: Path, out: Path, sample: Path, subject: Sy
     }
 
 
-def run_subject(preset: str, out: Path, rounds: int, resolution: int, iterations: int) -> dict:
+def run_subject(preset: str, out: Path, rounds: int, resolution: int, iterations: int, conditions: Sequence[str]) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     sample = out / "sample"
     if not (sample / "test" / "subject.json").is_file():
@@ -217,14 +219,14 @@ def run_subject(preset: str, out: Path, rounds: int, resolution: int, iterations
     subject = SyntheticSubject.from_dataset(sample / "train")
     base_train_psnr = training_psnr(Avatar.load(open_workspace(initial).require_avatar()), train)
     results, pictures = {}, {}
-    for name in CONDITIONS:
+    for name in conditions:
         info = run_condition(name, initial, out, sample, subject, train, rounds, base_train_psnr)
         mean, shown = score(Avatar.load(open_workspace(info.pop("workspace")).require_avatar()), data)
         results[name] = {**mean, **info}
         pictures[name] = shown
         print(f"  {preset} {name}: PSNR {mean['psnr']:.2f} dB, hidden {mean['psnr_hidden']:.2f} dB, IoU {mean['iou']:.4f}", flush=True)
     truth = [data.images[t] for t in SHOWN_FRAMES]
-    grid = torch.cat([torch.cat(truth, dim=1)] + [torch.cat(pictures[name], dim=1) for name in CONDITIONS], dim=0)
+    grid = torch.cat([torch.cat(truth, dim=1)] + [torch.cat(pictures[name], dim=1) for name in conditions], dim=0)
     (out.parent / "images").mkdir(exist_ok=True)
     write_image(out.parent / "images" / f"study_{preset}.png", torch.nn.functional.interpolate(
         grid.permute(2, 0, 1)[None], scale_factor=0.5, mode="area")[0].permute(1, 2, 0))  # fmt: skip
@@ -250,14 +252,15 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--resolution", type=int, default=512)
     parser.add_argument("--iterations", type=int, default=2000)
+    parser.add_argument("--conditions", nargs="+", default=list(CONDITIONS), choices=CONDITIONS)
     args = parser.parse_args()
     start = time.perf_counter()
     all_results = {}
     for preset in args.presets:
         print(f"subject {preset}", flush=True)
-        all_results[preset] = run_subject(preset, args.out / preset, args.rounds, args.resolution, args.iterations)
+        all_results[preset] = run_subject(preset, args.out / preset, args.rounds, args.resolution, args.iterations, args.conditions)
         (args.out / "study.json").write_text(json.dumps(all_results, indent=2))
-    mean = {name: {key: statistics.fmean(all_results[p][name][key] for p in args.presets) for key, _, _ in COLUMNS} for name in CONDITIONS}
+    mean = {name: {key: statistics.fmean(all_results[p][name][key] for p in args.presets) for key, _, _ in COLUMNS} for name in args.conditions}
     text = [f"# Study: {len(args.presets)} subjects x {args.rounds} rounds at {args.resolution}², {time.perf_counter() - start:.0f} s\n"]
     text += [f"## Mean over {', '.join(args.presets)}\n", markdown_table(mean), ""]
     for preset in args.presets:
