@@ -57,6 +57,13 @@ def relative_error(value: torch.Tensor, reference: torch.Tensor) -> float:
     return float((value.double() - reference).norm() / reference.norm().clamp_min(1e-30))
 
 
+def assert_gradients_match(grads, expected_grads, tolerance):
+    """Every parameter's gradient within `tolerance` relative error of a non-zero reference."""
+    for name, grad, expected in zip(["means", "quats", "scales", "opacities", "colors"], grads, expected_grads):
+        assert expected.abs().max() > 0, name
+        assert relative_error(grad, expected) <= tolerance, name
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
 def test_forward_matches_reference(seed):
     camera = make_camera(37, 29)
@@ -86,9 +93,7 @@ def test_gradients_match_reference_float64(seed, sh_degree):
     fast_grads = torch.autograd.grad(weighted_loss(fast.image, fast.alpha, fast.depth), params)
     ref = rasterization_reference(*params, camera, sh_degree=sh_degree, background=background)
     ref_grads = torch.autograd.grad(weighted_loss(*ref[:3]), params)
-    for name, grad, expected in zip(["means", "quats", "scales", "opacities", "colors"], fast_grads, ref_grads):
-        assert expected.abs().max() > 0, name
-        assert relative_error(grad, expected) <= 1e-6, name
+    assert_gradients_match(fast_grads, ref_grads, 1e-6)
 
 
 def test_gradients_of_a_masked_loss_match_reference():
@@ -101,9 +106,7 @@ def test_gradients_of_a_masked_loss_match_reference():
     fast_grads = torch.autograd.grad((fast.image * mask).sum(), params)
     ref_image = rasterization_reference(*params, camera)[0]
     ref_grads = torch.autograd.grad((ref_image * mask).sum(), params)
-    for name, grad, expected in zip(["means", "quats", "scales", "opacities", "colors"], fast_grads, ref_grads):
-        assert expected.abs().max() > 0, name
-        assert relative_error(grad, expected) <= 1e-6, name
+    assert_gradients_match(fast_grads, ref_grads, 1e-6)
 
 
 def test_region_composites_only_its_pixels_with_the_full_images_values_and_gradients():
