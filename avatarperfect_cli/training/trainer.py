@@ -81,15 +81,12 @@ def _supervised_region(view: TrainingView, margin: int) -> tuple[slice, slice]:
     return subject_bbox(view.foreground if view.loss_mask is None else view.loss_mask, margin)
 
 
-def _kept_transforms(
-    kept: dict[tuple[str, int], torch.Tensor], key: tuple[str, int], avatar: Avatar, body_pose: torch.Tensor, transl: torch.Tensor
-) -> torch.Tensor:
-    """The avatar's joint transforms for a view's fixed pose, computed on its first draw (forward kinematics
-    is a few dozen small operations, which on a GPU cost more than the skinning itself)."""
-    if key not in kept:
-        with torch.no_grad():
-            kept[key] = avatar.joint_transforms(body_pose, transl)
-    return kept[key]
+def _fixed_pose_transforms(avatar: Avatar, views: Sequence[TrainingView]) -> list[torch.Tensor]:
+    """Each view's (24, 4, 4) joint transforms, computed once: the poses and `rest_joints` stay fixed during
+    training (forward kinematics is a few dozen small operations, which on a GPU cost more than the
+    skinning itself)."""
+    with torch.no_grad():
+        return [avatar.joint_transforms(view.body_pose, view.transl) for view in views]
 
 
 def train(
@@ -120,7 +117,8 @@ def train(
     state = strategy.initialize_state()
     regions = [_supervised_region(view, config.bbox_margin) for view in video]
     edit_regions = [_supervised_region(view, config.bbox_margin) for view in edits]
-    kept: dict[tuple[str, int], torch.Tensor] = {}  # joint transforms of the fixed poses (rest_joints are fixed)
+    video_transforms = None if pose_refiner is not None else _fixed_pose_transforms(avatar, video)
+    edit_transforms = _fixed_pose_transforms(avatar, edits)
     with TrainingProgress(config.iterations, enabled=progress) as bar:
         for step in range(config.iterations):
             if step > 0 and step % config.sh_degree_interval == 0:
@@ -131,7 +129,7 @@ def train(
                 index = chooser.randrange(len(edits))
                 view, (rows, cols) = edits[index], edit_regions[index]
                 body_pose, transl = view.body_pose, view.transl
-                transforms = _kept_transforms(kept, ("edit", index), avatar, body_pose, transl)
+                transforms = edit_transforms[index]
             else:
                 index = chooser.randrange(len(video))
                 view, (rows, cols) = video[index], regions[index]
@@ -139,7 +137,7 @@ def train(
                 if pose_refiner is not None:
                     body_pose, transl = pose_refiner.pose(index, body_pose, transl, step)
                 else:
-                    transforms = _kept_transforms(kept, ("video", index), avatar, body_pose, transl)
+                    transforms = video_transforms[index]
             background = torch.rand(3).to(device)
             target = torch.where(view.foreground[rows, cols, None], view.image[rows, cols], background)
             out = render_avatar(avatar, body_pose, transl, view.camera, background, region=(rows, cols), transforms=transforms)
