@@ -80,7 +80,7 @@ def _frame_range(text: Optional[str]) -> FrameRange | None:
         raise AvatarPerfectError(str(error)) from None
 
 
-def _require_in_range(option: str, value: int | None, low: int, high: int | None = None) -> None:
+def _require_in_range(option: str, value: float | None, low: float, high: float | None = None) -> None:
     """One-line AvatarPerfectError unless low <= value (<= high); None passes (an unset option)."""
     from avatarperfect_cli.errors import AvatarPerfectError
 
@@ -269,6 +269,7 @@ def suggest(
     starts: int = typer.Option(3, help="Optimisation starts (the best of many random cameras), the best kept."),
     steps: int = typer.Option(30, help="Optimisation steps per start."),
     resolution: int = typer.Option(128, help="Longest image side while optimising, pixels."),
+    max_elevation: float = typer.Option(20.0, help="Highest camera angle above or below the video camera's horizon, degrees."),
     edit_weight: float = typer.Option(0.01, help="Weight w of the edit views in V."),
     seed: int = typer.Option(0, help="Seed; the same seed gives the same suggestion."),
     device: str = typer.Option("auto", help=DEVICE_HELP),
@@ -279,8 +280,12 @@ def suggest(
     from avatarperfect_cli.stages.suggest import SuggestSettings
     from avatarperfect_cli.stages.suggest import suggest as run
 
+    _require_in_range("--max-elevation", max_elevation, 0.0, 89.0)
     torch_device = resolve_device(device)
-    search = SuggestConfig(body_pose="random" if random_view else body_pose, starts=starts, steps=steps, resolution=resolution, seed=seed)
+    search = SuggestConfig(
+        body_pose="random" if random_view else body_pose, starts=starts, steps=steps, resolution=resolution,
+        max_elevation_deg=max_elevation, seed=seed,
+    )  # fmt: skip
     run(workspace, SuggestSettings(search, pose_prior, vposer_dir, edit_weight, torch_device))
 
 
@@ -320,6 +325,11 @@ def refine(
     workspace: Path = typer.Argument(..., help="Workspace folder."),
     iterations: int = typer.Option(500, help="Training steps (the paper: 500)."),
     edit_probability: float = typer.Option(0.3, help="Share of steps that train on an edit (the paper: 0.3)."),
+    new_edit_share: float = typer.Option(0.5, help="Share of the edit steps that go to the edits not trained on before."),
+    uniform_edits: bool = typer.Option(False, "--uniform-edits", help="Draw every edit alike instead (the paper)."),
+    keep_shapes: bool = typer.Option(
+        False, "--keep-shapes", help="Edits leave the Gaussians' scales and rotations alone (guards the video's look)."
+    ),
     seed: int = typer.Option(0, help="Random seed."),
     revert_to: Optional[int] = typer.Option(None, "--revert-to", help="Make avatar iteration K current again (keeps the others)."),
     delete_seen: bool = typer.Option(
@@ -335,7 +345,11 @@ def refine(
     if revert_to is not None:
         stage.revert(workspace, revert_to)
     else:
-        settings = stage.RefineSettings(iterations, edit_probability, seed, protect_seen=not delete_seen, device=torch_device)
+        share = None if uniform_edits else new_edit_share
+        settings = stage.RefineSettings(
+            iterations, edit_probability, seed, protect_seen=not delete_seen, new_edit_share=share, keep_shapes=keep_shapes,
+            device=torch_device,
+        )  # fmt: skip
         stage.refine(workspace, settings)
 
 

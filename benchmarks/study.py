@@ -8,6 +8,7 @@ condition runs `--rounds` rounds on its own copy of it:
     initial        no edits
     ap-exact       AvatarPerfect: suggested body pose + camera, simulated user with the true colours, refine
     ap-flat        the same with the flat-colour user (each blob its mean colour: the inpaint tool)
+    ap-keep-shapes ap-exact with `refine --keep-shapes` (edit steps leave scales and rotations alone)
     random         random natural pose + camera, exact user, refine (is the suggestion worth it?)
     canonical      canonical pose, suggested camera only, exact user, refine (is the body pose worth it?)
     erase-center   SuperSplat: canonical pose, the worst of 12 orbit views, erase the Gaussians whose
@@ -55,9 +56,11 @@ from avatarperfect_cli.stages.workspace_data import reference_pose
 from avatarperfect_cli.training import metrics
 
 WHITE = torch.ones(3)
-CONDITIONS = ("initial", "ap-exact", "ap-flat", "random", "canonical", "erase-center", "erase-splat")
-LOOP_CONDITIONS = {"ap-exact": ("optimise", "exact"), "ap-flat": ("optimise", "flat"),
-                   "random": ("random", "exact"), "canonical": ("canonical", "exact")}  # fmt: skip
+CONDITIONS = ("initial", "ap-exact", "ap-flat", "ap-keep-shapes", "random", "canonical", "erase-center", "erase-splat")
+# condition: (body pose, painting style, refine --keep-shapes)
+LOOP_CONDITIONS = {"ap-exact": ("optimise", "exact", False), "ap-flat": ("optimise", "flat", False),
+                   "ap-keep-shapes": ("optimise", "exact", True), "random": ("random", "exact", False),
+                   "canonical": ("canonical", "exact", False)}  # fmt: skip
 ORBIT_VIEWS = 12
 SHOWN_FRAMES = (3, 12, 18, 27)  # held-out frames in the pictures: walking, arms raised, legs apart, squat
 
@@ -173,14 +176,14 @@ def run_condition(name: str, initial: Path, out: Path, sample: Path, subject: Sy
     for round_index in range(rounds if name != "initial" else 0):
         start = time.perf_counter()
         if name in LOOP_CONDITIONS:
-            mode, style = LOOP_CONDITIONS[name]
+            mode, style, keep_shapes = LOOP_CONDITIONS[name]
             visibility(ws, progress=False)
             suggest(ws, SuggestSettings(SuggestConfig(body_pose=mode, seed=round_index)), progress=False)
             user_start = time.perf_counter()
             simulate_user(ws, sample, UserConfig(style=style), output=scratch / "painted.png", progress=False)
             apply_edit(ws, scratch / "painted.png", progress=False)
             user_seconds = time.perf_counter() - user_start
-            refine(ws, RefineSettings(seed=round_index), progress=False)
+            refine(ws, RefineSettings(seed=round_index, keep_shapes=keep_shapes), progress=False)
         else:
             user_start = time.perf_counter()
             pose, region = worst_orbit_region(ws, subject, scratch)

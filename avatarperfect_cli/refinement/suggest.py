@@ -49,7 +49,9 @@ class SuggestConfig:
     steps:       Adam steps per start
     resolution:  longest image side while optimising, pixels (the result is rendered at full size)
     fill:        share of the image the posed body may span
-    max_elevation_deg: the camera stays within this angle above or below the dataset camera's horizon
+    max_elevation_deg: the camera stays within this angle above or below the dataset camera's horizon;
+                 at 45° most searches ended on the band's edge, showing the soles from below or the top
+                 of the head from above, which animations seldom show (docs/suggest.md)
     min_separation_deg: a start must look from at least this far from earlier suggestions' cameras
     """
 
@@ -59,7 +61,7 @@ class SuggestConfig:
     steps: int = 30
     resolution: int = 128
     fill: float = 0.9
-    max_elevation_deg: float = 45.0
+    max_elevation_deg: float = 20.0
     min_separation_deg: float = 30.0
     latent_learning_rate: float = 0.12
     angle_learning_rate: float = 0.06

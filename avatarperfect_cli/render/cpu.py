@@ -39,7 +39,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         depth_keys = depth_array.view(np.uint32 if depth_array.itemsize == 4 else np.uint64)
         offsets, tile_gaussians = kernels.bin_gaussians(
             _array(means2d), _array(extents), depth_keys, 8 * depth_array.itemsize, _array(drawn),
-            width, height, TILE_SIZE, region,
+            width, height, TILE_SIZE, region, numba.get_num_threads(),
         )  # fmt: skip
         schedule = kernels.tile_schedule(offsets)
         layout = (offsets, tile_gaussians, schedule, width, height, TILE_SIZE, numba.get_num_threads())
@@ -134,7 +134,7 @@ def max_weight_in_region(
     depth_keys = depth_array.view(np.uint32 if depth_array.itemsize == 4 else np.uint64)
     offsets, tile_gaussians = kernels.bin_gaussians(
         _array(means2d), _array(extents), depth_keys, 8 * depth_array.itemsize, _array(drawn), width, height, TILE_SIZE,
-        _region_bounds(None, width, height),
+        _region_bounds(None, width, height), numba.get_num_threads(),
     )  # fmt: skip
     per_intersection = kernels.max_pixel_weights(
         _array(means2d), _array(conics), _array(opacities), offsets, tile_gaussians, _array(region), TILE_SIZE

@@ -107,23 +107,26 @@ def depth_order(depth_keys, drawn, key_bits):
     return order
 
 
-@njit(cache=True)
-def bin_gaussians(means2d, extents, depth_keys, key_bits, drawn, width, height, tile_size, region):
+@njit(cache=True, parallel=True)
+def bin_gaussians(means2d, extents, depth_keys, key_bits, drawn, width, height, tile_size, region, n_threads):
     """Assign Gaussians to the tiles their ellipse bounding box touches, depth-sorted per tile.
 
     means2d: (N, 2) pixels; extents: (N, 2) half-widths of the bounding box, pixels;
     depth_keys, key_bits: camera z as for `depth_order`; drawn: (N,) bool;
-    region: (row_start, row_stop, col_start, col_stop) pixels; only tiles it touches get Gaussians.
+    region: (row_start, row_stop, col_start, col_stop) pixels; only tiles it touches get Gaussians;
+    n_threads: the chunks the work is cut into (numba.get_num_threads(); the result does not depend on it).
     Returns tile_offsets (n_tiles + 1,) int64 and tile_gaussians (n_intersections,) int32, where the
     Gaussians of tile t, nearest first (stable for equal depths), are
     tile_gaussians[tile_offsets[t]:tile_offsets[t + 1]].
+
+    The depth order is cut into one contiguous chunk per thread; each thread counts, then writes, its
+    chunk's entries, starting in each tile after the nearer chunks' entries, so the lists come out as a
+    serial pass over the depth order would write them.
     """
     tiles_x = (width + tile_size - 1) // tile_size
-    tiles_y = (height + tile_size - 1) // tile_size
-    n = means2d.shape[0]
-    rects = np.zeros((n, 4), dtype=np.int64)
-    counts = np.zeros(tiles_x * tiles_y + 1, dtype=np.int64)
-    for g in range(n):
+    n_tiles = tiles_x * ((height + tile_size - 1) // tile_size)
+    rects = np.zeros((means2d.shape[0], 4), dtype=np.int64)  # tile columns [0, 1) and rows [2, 3)
+    for g in prange(means2d.shape[0]):
         if not drawn[g]:
             continue
         x0 = max(math.ceil(means2d[g, 0] - extents[g, 0] - 0.5), region[2])
@@ -136,18 +139,33 @@ def bin_gaussians(means2d, extents, depth_keys, key_bits, drawn, width, height, 
         rects[g, 1] = x1 // tile_size + 1
         rects[g, 2] = y0 // tile_size
         rects[g, 3] = y1 // tile_size + 1
-        for ty in range(rects[g, 2], rects[g, 3]):
-            for tx in range(rects[g, 0], rects[g, 1]):
-                counts[ty * tiles_x + tx + 1] += 1
-    offsets = np.cumsum(counts)
-    cursor = offsets[:-1].copy()
+    order = depth_order(depth_keys, drawn, key_bits)
+    n_chunks = max(1, min(n_threads, order.shape[0]))
+    chunk = (order.shape[0] + n_chunks - 1) // n_chunks
+    counts = np.zeros((n_chunks, n_tiles), dtype=np.int64)
+    for k in prange(n_chunks):
+        for i in range(k * chunk, min((k + 1) * chunk, order.shape[0])):
+            g = order[i]
+            for ty in range(rects[g, 2], rects[g, 3]):
+                for tx in range(rects[g, 0], rects[g, 1]):
+                    counts[k, ty * tiles_x + tx] += 1
+    offsets = np.zeros(n_tiles + 1, dtype=np.int64)
+    cursors = np.empty((n_chunks, n_tiles), dtype=np.int64)
+    for t in range(n_tiles):
+        position = offsets[t]
+        for k in range(n_chunks):
+            cursors[k, t] = position
+            position += counts[k, t]
+        offsets[t + 1] = position
     tile_gaussians = np.empty(offsets[-1], dtype=np.int32)
-    for g in depth_order(depth_keys, drawn, key_bits):
-        for ty in range(rects[g, 2], rects[g, 3]):
-            for tx in range(rects[g, 0], rects[g, 1]):
-                t = ty * tiles_x + tx
-                tile_gaussians[cursor[t]] = g
-                cursor[t] += 1
+    for k in prange(n_chunks):
+        for i in range(k * chunk, min((k + 1) * chunk, order.shape[0])):
+            g = order[i]
+            for ty in range(rects[g, 2], rects[g, 3]):
+                for tx in range(rects[g, 0], rects[g, 1]):
+                    t = ty * tiles_x + tx
+                    tile_gaussians[cursors[k, t]] = g
+                    cursors[k, t] += 1
     return offsets, tile_gaussians
 
 

@@ -37,6 +37,7 @@ class TrainingView:
     body_pose:  (24, 3) SMPL axis-angle, joint 0 = global orientation; transl: (3,) metres
     camera:     the view's camera
     loss_mask:  (H, W) bool edit mask M_k, or None to supervise every pixel (video frames)
+    draw_weight: relative chance of this edit among the edits when a step draws one
     """
 
     image: torch.Tensor
@@ -45,13 +46,14 @@ class TrainingView:
     transl: torch.Tensor
     camera: Camera
     loss_mask: torch.Tensor | None = None
+    draw_weight: float = 1.0
 
     def to(self, device: torch.device) -> TrainingView:
         """The view with every tensor (the camera's too) on `device`."""
         loss_mask = None if self.loss_mask is None else self.loss_mask.to(device)
         return TrainingView(
             self.image.to(device), self.foreground.to(device), self.body_pose.to(device), self.transl.to(device),
-            self.camera.to(device=device), loss_mask,
+            self.camera.to(device=device), loss_mask, self.draw_weight,
         )  # fmt: skip
 
 
@@ -65,6 +67,7 @@ class TrainConfig:
     bbox_margin: int = 20
     sh_degree_interval: int = 500  # raise the rendered SH degree by one every this many steps
     edit_probability: float = 0.3
+    edit_frozen: tuple[str, ...] = ()  # parameters (Avatar.params names) that edit steps leave unchanged
     learning_rates: LearningRates = field(default_factory=LearningRates)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
 
@@ -119,17 +122,20 @@ def train(
     edit_regions = [_supervised_region(view, config.bbox_margin) for view in edits]
     video_transforms = None if pose_refiner is not None else _fixed_pose_transforms(avatar, video)
     edit_transforms = _fixed_pose_transforms(avatar, edits)
+    edit_weights = [view.draw_weight for view in edits]
     with TrainingProgress(config.iterations, enabled=progress) as bar:
         for step in range(config.iterations):
             if step > 0 and step % config.sh_degree_interval == 0:
                 avatar.active_sh_degree = min(avatar.active_sh_degree + 1, avatar.sh_degree)
             set_learning_rates(optimizers, rates, step)
             transforms = None
+            frozen: tuple[str, ...] = ()
             if edits and chooser.random() < config.edit_probability:
-                index = chooser.randrange(len(edits))
+                index = chooser.choices(range(len(edits)), edit_weights)[0]
                 view, (rows, cols) = edits[index], edit_regions[index]
                 body_pose, transl = view.body_pose, view.transl
                 transforms = edit_transforms[index]
+                frozen = config.edit_frozen
             else:
                 index = chooser.randrange(len(video))
                 view, (rows, cols) = video[index], regions[index]
@@ -146,8 +152,9 @@ def train(
 
             strategy.step_pre_backward(avatar.params, optimizers, state, step, out)
             loss.backward()
-            for optimizer in optimizers.values():
-                optimizer.step()
+            for name, optimizer in optimizers.items():
+                if name not in frozen:
+                    optimizer.step()
                 optimizer.zero_grad(set_to_none=True)
             if pose_refiner is not None:
                 pose_refiner.step(step)

@@ -321,3 +321,22 @@ def test_two_rounds_of_the_loop_and_the_report(workspace: Path, tmp_path: Path):
         assert all(np.isfinite(value) for value in metrics.values())
     sheet = read_image(report / "suggestions.png")
     assert sheet.shape[:2] == (2 * 64, 4 * 64)
+
+
+def test_new_edits_share_the_given_part_of_the_edit_draws():
+    from avatarperfect_cli.stages.refine import edit_draw_weights
+    from avatarperfect_cli.stages.workspace_data import RegisteredEdit
+
+    edits = [RegisteredEdit(Path(f"edits/{n:03d}"), None) for n in (1, 2, 3, 4)]  # type: ignore[arg-type]
+    weights = edit_draw_weights(edits, {4}, 0.5)
+    assert weights[3] == pytest.approx(sum(weights[:3])) and len(set(weights[:3])) == 1
+    assert edit_draw_weights(edits, {3, 4}, 0.8) == pytest.approx([0.1, 0.1, 0.4, 0.4])
+    assert edit_draw_weights(edits, {4}, None) == [1.0] * 4  # the paper: every edit alike
+    assert edit_draw_weights(edits, set(), 0.5) == [1.0] * 4 == edit_draw_weights(edits, {1, 2, 3, 4}, 0.5)
+
+
+@pytest.mark.parametrize("option", [["--new-edit-share", "0"], ["--new-edit-share", "1.5"], ["--edit-probability", "-0.1"]])
+def test_refine_refuses_bad_shares_in_one_line(workspace: Path, option: list):
+    before = snapshot(workspace)
+    assert option[0] in one_line_error(invoke("refine", workspace, *option))
+    assert snapshot(workspace) == before

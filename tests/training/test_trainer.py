@@ -122,3 +122,42 @@ def test_edits_change_only_the_masked_region():
     assert untouched.sum() > 20
     for name, value in avatar.params.items():
         assert torch.equal(value[untouched], initial[name][untouched]), name
+
+
+def left_half_edit(video: list[TrainingView], colour: list[float], draw_weight: float = 1.0) -> TrainingView:
+    """An edit of the first frame's view painting its left half one flat colour."""
+    left = torch.zeros(SIZE, SIZE, dtype=torch.bool)
+    left[:, : SIZE // 2] = True
+    image = torch.tensor(colour).expand(SIZE, SIZE, 3)
+    return TrainingView(image, video[0].foreground, yaw(0.0), torch.zeros(3), camera(), loss_mask=left, draw_weight=draw_weight)
+
+
+def test_edits_are_drawn_by_their_draw_weights():
+    """An edit with draw weight 0 is never drawn: only the other edit's masked region changes."""
+    avatar = coloured_avatar()
+    video = video_of(avatar)
+    ignored = left_half_edit(video, [1.0, 0.0, 0.0], draw_weight=0.0)
+    drawn = left_half_edit(video, [0.0, 0.0, 1.0])
+    config = TrainConfig(iterations=40, edit_probability=1.0)
+    config.learning_rates.sh_dc = 0.05
+    train(avatar, video, [ignored, drawn], config=config, progress=False)
+    with torch.no_grad():
+        after = render_avatar(avatar, yaw(0.0), torch.zeros(3), camera(), torch.ones(3)).image
+    inside = video[0].foreground & drawn.loss_mask
+    blue_share = after[inside][:, 2].mean() - after[inside][:, 0].mean()
+    assert blue_share > 0.3, float(blue_share)
+
+
+def test_edit_steps_leave_the_frozen_parameters_unchanged():
+    avatar = coloured_avatar()
+    video = video_of(avatar)
+    edit = left_half_edit(video, [1.0, 0.0, 0.0])
+    initial = {name: value.detach().clone() for name, value in avatar.params.items()}
+    frozen = ("means", "quats", "log_scales")
+    train(avatar, video, [edit], config=TrainConfig(iterations=10, edit_probability=1.0, edit_frozen=frozen), progress=False)
+    for name in frozen:
+        assert torch.equal(avatar.params[name], initial[name]), name
+    assert not torch.equal(avatar.params["sh_dc"], initial["sh_dc"])
+    # the same steps drawing video frames do move them
+    train(avatar, video, [edit], config=TrainConfig(iterations=10, edit_probability=0.0, edit_frozen=frozen), progress=False)
+    assert not torch.equal(avatar.params["means"], initial["means"])
