@@ -153,6 +153,8 @@ def refine(workspace_root: Path, settings: RefineSettings | None = None, progres
                 "deleted": deleted,
                 "iterations": settings.iterations,
                 "edit_probability": settings.edit_probability,
+                "new_edit_share": settings.new_edit_share,
+                "keep_shapes": settings.keep_shapes,
                 "seed": settings.seed,
                 "seconds": round(seconds, 1),
                 "gaussians": len(avatar),
