@@ -360,13 +360,16 @@ def simulate_user(
     subject: Optional[Path] = typer.Option(None, "--subject", help="The make-sample folder [default: the workspace's dataset]."),
     style: str = typer.Option("exact", help="exact (true colours) or flat (each blob's mean colour, the inpaint tool)."),
     budget: float = typer.Option(0.15, help="Most pixels painted, as a share of the subject's pixels."),
+    priority: str = typer.Option(
+        "error", help="Which wrong regions first: error (most summed difference) or area (most pixels)."
+    ),
     output: Optional[Path] = typer.Option(None, "--output", "-o", help="Edited PNG [default: the suggestion's simulated_edit.png]."),
 ) -> None:
     """Paint the latest suggestion as a careful person would (synthetic subjects only), for apply-edit."""
     from avatarperfect_cli.sample.simulated_user import UserConfig
     from avatarperfect_cli.stages.simulate_user import simulate_user as run
 
-    run(workspace, subject, UserConfig(style=style, budget=budget), output)
+    run(workspace, subject, UserConfig(style=style, budget=budget, priority=priority), output)
 
 
 @app.command("report")

@@ -15,8 +15,11 @@ white (background pixels) and true colours (colour and missing pixels together, 
 miscoloured patch is one stroke). Each of the two masks is opened with a 3x3 square (lines thinner
 than 3 px are seams nobody paints) and grown back by one pixel inside the mask (so corners and tips
 of the broad regions stay), then split into 8-connected blobs; blobs under `min_region_pixels` are
-ignored. Blobs are painted largest first while their strokes fit in the budget; a blob whose
-stroke would overrun the budget is skipped whole (never clipped) and smaller ones are still tried.
+ignored. Blobs are painted most wrong first (`priority="error"`: the largest sum of the blurred
+difference over the blob's pixels, so a glaring floater comes before a wide, faintly off patch; the
+person fixes what looks worst) or largest first (`priority="area"`: most pixels), while their strokes
+fit in the budget; a blob whose stroke would overrun the budget is skipped whole (never clipped) and
+the next ones are still tried.
 
 A stroke covers its blob fully and fades out beyond it like a soft brush: weight 1 - d / (feather + 1)
 at distance d px from the blob, so with the default 1 px feather the ring of pixels around a blob gets
@@ -38,6 +41,7 @@ from avatarperfect_cli.errors import AvatarPerfectError
 from avatarperfect_cli.sample.mesh_raster import MeshRender
 
 STYLES = ("exact", "flat")
+PRIORITIES = ("area", "error")
 KINDS = ("background", "colour", "missing")
 _WHITE = np.ones(3, np.float32)
 
@@ -53,6 +57,7 @@ class UserConfig:
     min_region_pixels:  blobs smaller than this (after the clean-up) are specks nobody paints
     brush_feather_px:   width of the stroke's soft edge beyond the blob, pixels (0: a hard brush)
     blur_sigma_px:      standard deviation of the Gaussian blur before judging differences, pixels
+    priority:           "error" (the blobs with the largest summed difference first) or "area" (most pixels first)
     """
 
     style: str = "exact"
@@ -61,10 +66,14 @@ class UserConfig:
     min_region_pixels: int = 16
     brush_feather_px: float = 1.0
     blur_sigma_px: float = 1.0
+    priority: str = "error"
 
     def __post_init__(self) -> None:
         if self.style not in STYLES:
             raise AvatarPerfectError(f"unknown painting style {self.style!r}; choose one of {', '.join(STYLES)}")
+        if self.priority not in PRIORITIES:
+            choices = ", ".join(PRIORITIES)
+            raise AvatarPerfectError(f"unknown painting priority {self.priority!r}; choose one of {choices}")
         if not 0.0 < self.budget <= 1.0:
             raise AvatarPerfectError(f"the painting budget is a share of the subject in (0, 1], got {self.budget}")
         if self.colour_tolerance <= 0.0 or self.min_region_pixels < 1:
@@ -111,6 +120,7 @@ class _Blob:
     white: bool  # painted white (background), else in true colours
     label: int  # its label in its paint's component image
     area: int
+    error: float  # sum over its pixels of the blurred difference
     box: tuple[int, int, int, int]  # x, y, width, height
 
 
@@ -135,7 +145,8 @@ def paint(
     truth_rgb = truth.rgb.astype(np.float32)
     truth_shows = truth.coverage >= 0.5
     avatar_shows = (alpha > 0.5) | (np.abs(image - _WHITE).mean(axis=2) > config.colour_tolerance)
-    wrong = _blurred_difference(image, truth_rgb, config.blur_sigma_px) > config.colour_tolerance
+    difference = _blurred_difference(image, truth_rgb, config.blur_sigma_px)
+    wrong = difference > config.colour_tolerance
     kind = np.full((height, width), -1, np.int8)  # index into KINDS of each wrong pixel
     kind[wrong & avatar_shows & ~truth_shows] = KINDS.index("background")
     kind[wrong & avatar_shows & truth_shows] = KINDS.index("colour")
@@ -146,11 +157,13 @@ def paint(
     for white, mask in ((True, kind == KINDS.index("background")), (False, wrong & truth_shows)):
         count, labels, stats, _ = cv2.connectedComponentsWithStats(_clean_up(mask), connectivity=8)
         component_images[white] = labels
+        errors = np.bincount(labels.ravel(), difference.ravel(), minlength=count)
         for label in range(1, count):
             x, y, w, h, area = (int(v) for v in stats[label])
             if area >= config.min_region_pixels:
-                blobs.append(_Blob(white, label, area, (x, y, w, h)))
-    blobs.sort(key=lambda blob: (-blob.area, not blob.white, blob.label))
+                blobs.append(_Blob(white, label, area, float(errors[label]), (x, y, w, h)))
+    size = (lambda blob: blob.area) if config.priority == "area" else (lambda blob: blob.error)
+    blobs.sort(key=lambda blob: (-size(blob), not blob.white, blob.label))
 
     subject_pixels = int((truth_shows | avatar_shows).sum())
     budget_pixels = math.floor(config.budget * subject_pixels)

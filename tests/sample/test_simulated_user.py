@@ -152,7 +152,7 @@ def test_budget_paints_the_largest_blobs_that_fit_first() -> None:
     strokes = [int(cv2.dilate(blob.astype(np.uint8), np.ones((3, 3), np.uint8)).sum()) for blob in blobs]
     budget_pixels = strokes[0] + strokes[3]  # the largest and the smallest; the middle two do not fit
     assert strokes[0] + strokes[2] > budget_pixels
-    result = _paint(scene, budget=(budget_pixels + 0.5) / subject_pixels)
+    result = _paint(scene, budget=(budget_pixels + 0.5) / subject_pixels, priority="area")
     assert result.stats.budget_pixels == budget_pixels
     np.testing.assert_array_equal(result.stroke_weight.numpy() == 1.0, blobs[0] | blobs[3])
     changed = (result.image.numpy() != scene.suggested.numpy()).any(axis=2)
@@ -161,6 +161,36 @@ def test_budget_paints_the_largest_blobs_that_fit_first() -> None:
     # The default 15 % budget holds too.
     default = _paint(scene)
     assert 0 < default.stats.painted_pixels <= default.stats.budget_pixels == int(0.15 * subject_pixels)
+
+
+def _faint_and_strong_scene() -> tuple[MeshRender, torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]:
+    """A flat body with a large, faintly wrong patch (20 x 20 px, 0.12 off) and a small floater off the
+    body (10 x 10 px, 0.8 off): the truth, the suggested render, its alpha and the two masks."""
+    body = _box(slice(10, 70), slice(10, 50))
+    truth_rgb = np.where(body[..., None], np.full(3, 0.5, np.float32), np.ones(3, np.float32))
+    faint, strong = _box(slice(20, 40), slice(20, 40)), _box(slice(30, 40), slice(70, 80))
+    rgb, alpha = truth_rgb.copy(), body.astype(np.float32)
+    rgb[faint] = 0.62
+    rgb[strong] = 0.2
+    alpha[strong] = 1.0
+    return MeshRender(truth_rgb, body.astype(np.float32), None), _quantised(rgb), torch.from_numpy(alpha), faint, strong
+
+
+@pytest.mark.parametrize("priority", ["area", "error"])
+def test_priority_decides_which_blob_a_tight_budget_paints(priority: str) -> None:
+    truth, suggested, alpha, faint, strong = _faint_and_strong_scene()
+    subject_pixels = int(((truth.coverage >= 0.5) | (alpha.numpy() > 0.5)).sum())
+    both = paint(suggested, alpha, truth, UserConfig(budget=1.0, priority=priority))
+    blobs = _blobs(both.stroke_weight.numpy())
+    assert len(blobs) == 2 and blobs[0].any()
+    # Room for the larger blob's stroke (the blob and its 1 px feather), so for either blob but not both.
+    strokes = [int(cv2.dilate(blob.astype(np.uint8), np.ones((3, 3), np.uint8)).sum()) for blob in blobs]
+    result = paint(suggested, alpha, truth, UserConfig(budget=(max(strokes) + 0.5) / subject_pixels, priority=priority))
+    painted = result.stroke_weight.numpy() == 1.0
+    assert result.stats.blobs_painted == 1
+    # area: the large faint patch first; error (summed difference): the small glaring floater first
+    expected, other = (faint, strong) if priority == "area" else (strong, faint)
+    assert painted[expected].mean() > 0.8 and not painted[other].any()
 
 
 @pytest.mark.parametrize("feather", [0.0, 1.0, 2.0])
@@ -194,7 +224,8 @@ def test_painting_is_deterministic() -> None:
 
 
 @pytest.mark.parametrize(
-    "config", [{"style": "sketchy"}, {"budget": 0.0}, {"budget": 1.5}, {"brush_feather_px": -1.0}]
+    "config",
+    [{"style": "sketchy"}, {"budget": 0.0}, {"budget": 1.5}, {"brush_feather_px": -1.0}, {"priority": "loudest"}],
 )
 def test_bad_settings_are_one_line_errors(config: dict) -> None:
     with pytest.raises(AvatarPerfectError, match=r"^[^\n]+$"):
