@@ -31,7 +31,7 @@ from avatarperfect_cli.refinement.collision import BodyCapsules
 from avatarperfect_cli.refinement.pose_prior import PosePrior
 from avatarperfect_cli.refinement.visibility import suggestion_weights
 from avatarperfect_cli.render import Camera, rasterization
-from avatarperfect_cli.render.camera import framing_distance, rotation_about
+from avatarperfect_cli.render.camera import MAX_MAGNIFICATION, framing_distance, rotation_about
 from avatarperfect_cli.training.optim import Adam
 
 BODY_POSE_MODES = ("optimise", "canonical", "random")
@@ -49,6 +49,9 @@ class SuggestConfig:
     steps:       Adam steps per start
     resolution:  longest image side while optimising, pixels (the result is rendered at full size)
     fill:        share of the image the posed body may span
+    max_magnification: no body part may look more than this many times larger than at the body's centre
+                 (the camera backs off): at 512² a `tall` search put a raised foot 2.4x closer to the
+                 camera than the hips, and the picture was one blurred shoe (docs/suggest.md)
     max_elevation_deg: the camera stays within this angle above or below the dataset camera's horizon;
                  at 45° most searches ended on the band's edge, showing the soles from below or the top
                  of the head from above, which animations seldom show (docs/suggest.md)
@@ -61,6 +64,7 @@ class SuggestConfig:
     steps: int = 30
     resolution: int = 128
     fill: float = 0.9
+    max_magnification: float = MAX_MAGNIFICATION
     max_elevation_deg: float = 20.0
     min_separation_deg: float = 30.0
     latent_learning_rate: float = 0.12
@@ -93,8 +97,11 @@ class OrbitView:
     dataset camera (intrinsics, up direction, azimuth 0).
     """
 
-    def __init__(self, avatar: Avatar, prior: PosePrior, reference: PoseFile, fill: float) -> None:
-        self.avatar, self.prior, self.reference, self.fill = avatar, prior, reference, fill
+    def __init__(
+        self, avatar: Avatar, prior: PosePrior, reference: PoseFile, fill: float, max_magnification: float = MAX_MAGNIFICATION
+    ) -> None:
+        self.avatar, self.prior, self.reference = avatar, prior, reference
+        self.fill, self.max_magnification = fill, max_magnification
         self.device = avatar.device
         rotation = reference.camera.world_to_camera[:3, :3].float().to(self.device)
         self.base_rotation = rotation
@@ -126,7 +133,9 @@ class OrbitView:
         world[:3, :3] = orbit.T  # turning the body by orbit^T = turning the camera by orbit
         world[:3, 3] = center - orbit.T @ center
         means, quats = self.avatar.pose(posed_pose, posed_transl, world)
-        distance = framing_distance(means - center, self.base_rotation, camera.K, camera.width, camera.height, self.fill)
+        distance = framing_distance(
+            means - center, self.base_rotation, camera.K, camera.width, camera.height, self.fill, self.max_magnification
+        )
         base = self._camera(center, float(distance.detach()), camera)
         # the camera sits at the detached distance; moving the body by the difference (zero in value) lets
         # the gradient see that a pose which widens the body pushes the camera back
@@ -182,7 +191,7 @@ def suggest_view(
     if config.body_pose not in BODY_POSE_MODES:
         raise ValueError(f"body_pose must be one of {BODY_POSE_MODES}, got {config.body_pose!r}")
     generator = torch.Generator().manual_seed(config.seed)
-    view = OrbitView(avatar, prior, reference, config.fill)
+    view = OrbitView(avatar, prior, reference, config.fill, config.max_magnification)
     full = reference.camera
     small = full.scaled(min(1.0, config.resolution / max(full.width, full.height)))
     weights = suggestion_weights(visibility).float()[:, None].to(avatar.device)

@@ -75,18 +75,32 @@ def rotation_about(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
     return identity + torch.sin(angle) * cross + (1 - torch.cos(angle)) * (cross @ cross)
 
 
-def framing_distance(points: torch.Tensor, rotation: torch.Tensor, K: torch.Tensor, width: int, height: int, fill: float) -> torch.Tensor:
+# Framing keeps every part of the subject within this magnification of its centre (`framing_distance`).
+MAX_MAGNIFICATION = 1.5
+
+
+def framing_distance(
+    points: torch.Tensor, rotation: torch.Tensor, K: torch.Tensor, width: int, height: int, fill: float,
+    max_magnification: float = MAX_MAGNIFICATION,
+) -> torch.Tensor:
     """Distance, metres, from the look-at point to a camera with `rotation` (3, 3, world -> camera) and
-    intrinsics K, W x H, at which every point fits inside `fill` of the image around the principal point.
+    intrinsics K, W x H, at which every point fits inside `fill` of the image around the principal point
+    and no point is nearer than 1 / max_magnification of that distance (so no part looks more than
+    `max_magnification` times larger than at the look-at point: a foot raised toward the camera would
+    otherwise fill the picture with its blurred close-up).
 
     points: (N, 3) relative to the look-at point, world frame. The camera sits at -distance * forward.
     Returns a 0-d tensor, differentiable w.r.t. the points (through the extreme ones).
     """
+    if max_magnification <= 1.0:
+        raise ValueError(f"max_magnification must exceed 1, got {max_magnification}")
     x, y, z = (points @ rotation.detach().to(points.dtype).T).unbind(-1)
     fx, fy, cx, cy = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
-    # the extreme points decide: the largest offset / (room on that side) minus depth, per side and axis
+    # the extreme points decide: the largest offset / (room on that side) minus depth, per side and axis;
+    # a point at depth z (relative) sits at distance + z, which must be >= distance / max_magnification
     need = torch.stack([
         fx * x / (fill * (width - cx)) - z, -fx * x / (fill * cx) - z,
         fy * y / (fill * (height - cy)) - z, -fy * y / (fill * cy) - z, 0.05 - z,  # 5 cm in front at least
+        -z / (1.0 - 1.0 / max_magnification),
     ])  # fmt: skip
     return need.max()

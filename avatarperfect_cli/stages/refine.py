@@ -94,16 +94,25 @@ SHAPE_PARAMETERS = ("quats", "log_scales")
 # A refinement continues where the initial fit's position schedule ended (1.6e-4 -> 1.6e-6 over 2000
 # steps) rather than restarting it at the top, which would shake the fitted Gaussians loose.
 REFINE_MEANS_RATE = 1.6e-5
+# Scales and rotations learn at 3% of GART's rates. At full rates every 500-step refine stretched more
+# Gaussians to fit the training poses, which showed as streaks at bent knees in other poses: on `tall`,
+# three video-only refines took 462 -> 944 Gaussians longer than 3 cm and held-out PSNR -0.68 dB; at 10%:
+# 556 and -0.08 dB; at 3%: 486 and -0.02 dB. Five study rounds (ap-exact), held-out PSNR change on `tall`:
+# -0.41 dB at 100%, +0.25 at 10%, +0.51 at 3%, +0.36 at 1% (`default`: +0.57 at 10%, +0.84 at 3%).
+REFINE_SHAPE_RATE_FACTOR = 0.03
 
 
 def refine_config(settings: RefineSettings) -> TrainConfig:
     """The training settings of a refinement run: GART's rates over `iterations`, positions from
-    REFINE_MEANS_RATE down, skinning from step 0, and no densification: splitting and pruning at steps
-    101 and 302 of a 500-step run leave too few steps to settle (measured on the 256² sample, 500
-    video-only steps: -0.33 dB on the training frames with densification, +0.21 dB without)."""
+    REFINE_MEANS_RATE down, scales and rotations at REFINE_SHAPE_RATE_FACTOR of theirs, skinning from
+    step 0, and no densification: splitting and pruning at steps 101 and 302 of a 500-step run leave
+    too few steps to settle (measured on the 256² sample, 500 video-only steps: -0.33 dB on the
+    training frames with densification, +0.21 dB without)."""
     config = TrainConfig(iterations=settings.iterations, seed=settings.seed, edit_probability=settings.edit_probability)
     config.learning_rates.total_steps = settings.iterations
     config.learning_rates.means = REFINE_MEANS_RATE
+    config.learning_rates.quats *= REFINE_SHAPE_RATE_FACTOR
+    config.learning_rates.log_scales *= REFINE_SHAPE_RATE_FACTOR
     config.learning_rates.skin_start = 0
     config.densify.refine_stop = 0
     if settings.keep_shapes:

@@ -2,8 +2,9 @@
 
 Each step draws a view (an edit with probability `edit_probability`, else a video frame), poses the
 avatar, renders it over a random background colour, and takes an Adam step on L1 + λ(1 − SSIM) over
-the subject's bounding box (edits: masked by the edit mask M_k, paper §6.3). Densification lives in
-the strategy object's hooks, so the loop holds no bookkeeping of its own.
+the subject's bounding box (edits: masked by the edit mask M_k, paper §6.3, plus the alpha of their
+background pixels). Densification lives in the strategy object's hooks, so the loop holds no
+bookkeeping of its own.
 
 Training runs on the avatar's device (`Avatar.to`): the views are moved there once, the background
 colours are drawn by the CPU generator (the same colours on every device) and moved there.
@@ -68,6 +69,10 @@ class TrainConfig:
     sh_degree_interval: int = 500  # raise the rendered SH degree by one every this many steps
     edit_probability: float = 0.3
     edit_frozen: tuple[str, ...] = ()  # parameters (Avatar.params names) that edit steps leave unchanged
+    # weight of an edit's background pixels' alpha in its loss (`background_alpha`): the colour loss alone
+    # pushes a Gaussian out only as hard as its colour differs from the step's background. On the 512²
+    # sample's background edit the stroke's largest alpha after refine was 0.057 without it, 0.046 with 4.
+    background_alpha_weight: float = 4.0
     learning_rates: LearningRates = field(default_factory=LearningRates)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
 
@@ -78,6 +83,12 @@ def video_views(video: VideoDataset) -> list[TrainingView]:
         TrainingView(video.images[t], video.masks[t], video.body_pose[t], video.transl[t], video.camera)
         for t in range(len(video))
     ]
+
+
+def background_alpha(alpha: torch.Tensor, loss_mask: torch.Tensor, foreground: torch.Tensor) -> torch.Tensor:
+    """Alpha summed over an edit's background pixels (inside M_k, not foreground), divided by the pixel
+    count of `alpha` (H, W), as L1 averages: the term that makes the Gaussians there vanish."""
+    return (alpha * (loss_mask & ~foreground)).sum() / alpha.numel()
 
 
 def _supervised_region(view: TrainingView, margin: int) -> tuple[slice, slice]:
@@ -149,6 +160,8 @@ def train(
             out = render_avatar(avatar, body_pose, transl, view.camera, background, region=(rows, cols), transforms=transforms)
             mask = None if view.loss_mask is None else view.loss_mask[rows, cols]
             loss = image_loss(out.image[rows, cols], target, mask, config.ssim_weight)
+            if mask is not None and config.background_alpha_weight:
+                loss = loss + config.background_alpha_weight * background_alpha(out.alpha[rows, cols], mask, view.foreground[rows, cols])
 
             strategy.step_pre_backward(avatar.params, optimizers, state, step, out)
             loss.backward()

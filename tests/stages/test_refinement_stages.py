@@ -335,6 +335,24 @@ def test_new_edits_share_the_given_part_of_the_edit_draws():
     assert edit_draw_weights(edits, set(), 0.5) == [1.0] * 4 == edit_draw_weights(edits, {1, 2, 3, 4}, 0.5)
 
 
+def test_refine_config_continues_the_fit_gently():
+    """Positions from REFINE_MEANS_RATE, scales and rotations at REFINE_SHAPE_RATE_FACTOR of GART's rates,
+    skinning from step 0, no densification; colours and opacities at GART's rates."""
+    from avatarperfect_cli.stages.refine import REFINE_MEANS_RATE, REFINE_SHAPE_RATE_FACTOR, RefineSettings, refine_config
+    from avatarperfect_cli.training.trainer import TrainConfig
+
+    gart, config = TrainConfig().learning_rates, refine_config(RefineSettings(iterations=300))
+    rates = config.learning_rates
+    assert 0.0 < REFINE_SHAPE_RATE_FACTOR < 1.0
+    for name in ("quats", "log_scales"):
+        assert rates.at(name, 0) == pytest.approx(REFINE_SHAPE_RATE_FACTOR * gart.at(name, 0))
+    for name in ("opacity_logits", "sh_dc", "sh_rest"):
+        assert rates.at(name, 150) == gart.at(name, 150)
+    assert rates.at("means", 0) == pytest.approx(REFINE_MEANS_RATE) and rates.at("means", 300) == pytest.approx(gart.means_final)
+    assert rates.at("skin_logits", 0) == pytest.approx(gart.skin_logits) and gart.skin_logits > 0.0
+    assert config.iterations == 300 and config.densify.refine_stop == 0
+
+
 @pytest.mark.parametrize("option", [["--new-edit-share", "0"], ["--new-edit-share", "1.5"], ["--edit-probability", "-0.1"]])
 def test_refine_refuses_bad_shares_in_one_line(workspace: Path, option: list):
     before = snapshot(workspace)

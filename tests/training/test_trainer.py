@@ -13,7 +13,7 @@ from avatarperfect_cli.gaussians import rgb_to_sh
 from avatarperfect_cli.render import Camera, look_at
 from avatarperfect_cli.training.metrics import psnr
 from avatarperfect_cli.training.strategy import DensifyConfig
-from avatarperfect_cli.training.trainer import TrainConfig, TrainingView, train
+from avatarperfect_cli.training.trainer import TrainConfig, TrainingView, background_alpha, train
 
 SIZE = 48
 
@@ -161,3 +161,33 @@ def test_edit_steps_leave_the_frozen_parameters_unchanged():
     # the same steps drawing video frames do move them
     train(avatar, video, [edit], config=TrainConfig(iterations=10, edit_probability=0.0, edit_frozen=frozen), progress=False)
     assert not torch.equal(avatar.params["means"], initial["means"])
+
+
+def test_background_alpha_sums_the_edit_background_over_all_pixels():
+    alpha = torch.rand(6, 5, dtype=torch.float64)
+    mask = torch.zeros(6, 5, dtype=torch.bool)
+    mask[1:4, 1:3] = True
+    foreground = torch.zeros(6, 5, dtype=torch.bool)
+    foreground[1, 1] = True
+    expected = sum(float(alpha[y, x]) for y in range(6) for x in range(5) if mask[y, x] and not foreground[y, x]) / 30
+    assert math.isclose(float(background_alpha(alpha, mask, foreground)), expected, rel_tol=1e-12)
+
+
+def test_background_alpha_weight_clears_a_background_edit_faster():
+    """A background edit (left half: nothing here) against a sphere whose colour is close to the random
+    backgrounds' mean: the alpha term clears more of the region than the colour loss alone."""
+    grey = Avatar.from_template(sphere_template(), sh_degree=1)
+    grey.params["sh_dc"].data = rgb_to_sh(torch.full((len(grey), 3), 0.5))[:, None, :]
+    video = video_of(grey)
+    left = torch.zeros(SIZE, SIZE, dtype=torch.bool)
+    left[:, : SIZE // 2] = True
+    edit = TrainingView(torch.ones(SIZE, SIZE, 3), torch.zeros(SIZE, SIZE, dtype=torch.bool), yaw(0.0), torch.zeros(3), camera(), loss_mask=left)
+    remaining = []
+    for weight in (0.0, 4.0):
+        avatar = Avatar.from_template(sphere_template(), sh_degree=1)
+        avatar.params["sh_dc"].data = grey.params["sh_dc"].data.clone()
+        train(avatar, video, [edit], config=TrainConfig(iterations=100, edit_probability=1.0, background_alpha_weight=weight), progress=False)
+        with torch.no_grad():
+            alpha = render_avatar(avatar, yaw(0.0), torch.zeros(3), camera(), torch.ones(3)).alpha
+        remaining.append(float(alpha[left & video[0].foreground].mean()))
+    assert remaining[1] < 0.9 * remaining[0], remaining
