@@ -71,7 +71,8 @@ class TrainConfig:
     edit_frozen: tuple[str, ...] = ()  # parameters (Avatar.params names) that edit steps leave unchanged
     # weight of an edit's background pixels' alpha in its loss (`background_alpha`): the colour loss alone
     # pushes a Gaussian out only as hard as its colour differs from the step's background. On the 512²
-    # sample's background edit the stroke's largest alpha after refine was 0.057 without it, 0.046 with 4.
+    # sample's background edit (refine at full shape rates) the stroke's largest alpha after refine was
+    # 0.057 without it, 0.046 with 4.
     background_alpha_weight: float = 4.0
     learning_rates: LearningRates = field(default_factory=LearningRates)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
