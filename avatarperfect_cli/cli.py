@@ -271,6 +271,9 @@ def suggest(
     resolution: int = typer.Option(128, help="Longest image side while optimising, pixels."),
     max_elevation: float = typer.Option(20.0, help="Highest camera angle above or below the video camera's horizon, degrees."),
     edit_weight: float = typer.Option(0.01, help="Weight w of the edit views in V."),
+    exposure_poses: int = typer.Option(
+        32, help="Random natural poses that weigh each Gaussian by how much animations show it; 0: the paper's objective."
+    ),
     seed: int = typer.Option(0, help="Seed; the same seed gives the same suggestion."),
     device: str = typer.Option("auto", help=DEVICE_HELP),
 ) -> None:
@@ -281,10 +284,11 @@ def suggest(
     from avatarperfect_cli.stages.suggest import suggest as run
 
     _require_in_range("--max-elevation", max_elevation, 0.0, 89.0)
+    _require_in_range("--exposure-poses", exposure_poses, 0)
     torch_device = resolve_device(device)
     search = SuggestConfig(
         body_pose="random" if random_view else body_pose, starts=starts, steps=steps, resolution=resolution,
-        max_elevation_deg=max_elevation, seed=seed,
+        max_elevation_deg=max_elevation, exposure_poses=exposure_poses, seed=seed,
     )  # fmt: skip
     run(workspace, SuggestSettings(search, pose_prior, vposer_dir, edit_weight, torch_device))
 

@@ -1,10 +1,16 @@
 """Body and camera pose suggestion (paper §6.2): show the user what the video saw least.
 
-Minimises  sum_i clip(V_i - mean V) * sigma(G, D(z), tau)_i  over a latent body pose z (decoded by a
-natural-pose prior D) and an orbit camera tau = (azimuth, elevation) around the posed body. The sum
-is the sum of a one-channel image whose per-Gaussian colour is clip(V_i - mean V) (the weight image),
-so it is differentiable through the rasterizer; the camera enters as a rigid transform of the posed
-Gaussians (the rasterizer's camera itself carries no gradient), which is the same image.
+Minimises  sum_i clip(V_i - mean V) * r_i * sigma(G, D(z), tau)_i  over a latent body pose z (decoded by
+a natural-pose prior D) and an orbit camera tau = (azimuth, elevation) around the posed body. The sum
+is the sum of a one-channel image whose per-Gaussian colour is clip(V_i - mean V) * r_i (the weight
+image), so it is differentiable through the rasterizer; the camera enters as a rigid transform of the
+posed Gaussians (the rasterizer's camera itself carries no gradient), which is the same image.
+
+r_i = min(1, E_i / mean E) is how much animations show Gaussian i (`exposure_relevance`): E_i is its mean
+visibility over `exposure_poses` random natural poses seen from the dataset camera's height. This is not
+in the paper (r = 1, `exposure_poses=0`): the paper's objective weighs every barely-seen Gaussian alike,
+so it spends rounds on the soles and the top of the head, which the video never saw and animations
+hardly show (docs/study.md: on `default`, three of five suggestions showed the soles).
 
 The camera keeps the dataset camera's intrinsics and up direction; azimuth 0 / elevation 0 is the
 dataset camera's own viewing direction. Its distance is set from the posed body each step so that the
@@ -29,12 +35,13 @@ from avatarperfect_cli.body import forward_kinematics
 from avatarperfect_cli.io.pose_json import PoseFile
 from avatarperfect_cli.refinement.collision import BodyCapsules
 from avatarperfect_cli.refinement.pose_prior import PosePrior
-from avatarperfect_cli.refinement.visibility import suggestion_weights
+from avatarperfect_cli.refinement.visibility import gaussian_visibility, suggestion_weights
 from avatarperfect_cli.render import Camera, rasterization
 from avatarperfect_cli.render.camera import MAX_MAGNIFICATION, framing_distance, rotation_about
 from avatarperfect_cli.training.optim import Adam
 
 BODY_POSE_MODES = ("optimise", "canonical", "random")
+EXPOSURE_SEED_OFFSET = 7919  # animation_exposure's random stream: seed + this
 SUGGEST_ADAM_EPS = 1e-8  # torch.optim.Adam's default: z and the angles are O(1), unlike the Gaussians' parameters
 
 
@@ -56,6 +63,8 @@ class SuggestConfig:
                  at 45° most searches ended on the band's edge, showing the soles from below or the top
                  of the head from above, which animations seldom show (docs/suggest.md)
     min_separation_deg: a start must look from at least this far from earlier suggestions' cameras
+    exposure_poses: random natural poses that measure how much animations show each Gaussian (the
+                 relevance r of the module doc); 0 gives the paper's objective (r = 1)
     """
 
     body_pose: str = "optimise"
@@ -70,6 +79,7 @@ class SuggestConfig:
     latent_learning_rate: float = 0.12
     angle_learning_rate: float = 0.06
     collision_weight: float = 1e4
+    exposure_poses: int = 32
     seed: int = 0
 
 
@@ -80,7 +90,7 @@ class Suggestion:
     pose:      body_pose (24, 3), transl (3,) and the full-size camera
     latent:    (32,) z of the body pose
     azimuth, elevation: orbit angles, radians, relative to the dataset camera
-    objective: sum_i clip(V_i - mean V) * sigma_i at full size (lower shows more of the barely seen)
+    objective: sum_i clip(V_i - mean V) * r_i * sigma_i at full size (lower shows more of the barely seen)
     """
 
     pose: PoseFile
@@ -165,6 +175,32 @@ class OrbitView:
         return Camera(camera.K.float().to(self.device), view, camera.width, camera.height)
 
 
+def animation_exposure(
+    view: OrbitView, prior: PosePrior, capsules: BodyCapsules, camera: Camera, poses: int, seed: int
+) -> torch.Tensor:
+    """E: (N,) float64 mean visibility (pixels at `camera`'s size) of every Gaussian over `poses` random
+    collision-free natural poses (the reference pose where a draw collides), each seen from a random
+    azimuth at the dataset camera's height and framed as the search frames it. Its own random stream, so
+    the search draws the same starts with or without it."""
+    generator = torch.Generator().manual_seed(seed + EXPOSURE_SEED_OFFSET)
+    total = torch.zeros(len(view.avatar), dtype=torch.float64, device=view.device)
+    blank = torch.zeros(len(view.avatar), 1, device=view.device)
+    with torch.no_grad():
+        for _ in range(poses):
+            latent = prior.sample_latent(generator)
+            if capsules.intersecting_pairs(view.body_pose(latent)):
+                latent = prior.initial_latent()
+            azimuth = torch.tensor(2 * math.pi * float(torch.rand((), generator=generator)))
+            _, pose = view.render(latent, azimuth, torch.tensor(0.0), camera, blank)
+            total += gaussian_visibility(view.avatar, pose)
+    return total / poses
+
+
+def exposure_relevance(exposure: torch.Tensor) -> torch.Tensor:
+    """r = min(1, E / mean E), (N,): every Gaussian animations show at least averagely counts fully."""
+    return (exposure / exposure.mean().clamp_min(1e-30)).clamp_max(1.0)
+
+
 def _angle_between_views(first: Camera, second: Camera) -> float:
     """Angle, degrees, between two cameras' viewing directions."""
     cosine = float(first.world_to_camera[2, :3].double() @ second.world_to_camera[2, :3].double())
@@ -195,6 +231,9 @@ def suggest_view(
     full = reference.camera
     small = full.scaled(min(1.0, config.resolution / max(full.width, full.height)))
     weights = suggestion_weights(visibility).float()[:, None].to(avatar.device)
+    if config.exposure_poses:
+        exposure = animation_exposure(view, prior, capsules, small, config.exposure_poses, config.seed)
+        weights = weights * exposure_relevance(exposure).float()[:, None]
     scale = float(weights.abs().max()) or 1.0
     weights = weights / scale  # the search works on weights in [-1, 0]; `_finish` reports in V's units
 

@@ -17,7 +17,13 @@ from avatarperfect_cli.io.pose_json import PoseFile
 from avatarperfect_cli.refinement import suggest
 from avatarperfect_cli.refinement.collision import BodyCapsules
 from avatarperfect_cli.refinement.pose_prior import BuiltinPosePrior, joint_limit_violations, load_pose_prior
-from avatarperfect_cli.refinement.suggest import OrbitView, SuggestConfig, suggest_view
+from avatarperfect_cli.refinement.suggest import (
+    OrbitView,
+    SuggestConfig,
+    animation_exposure,
+    exposure_relevance,
+    suggest_view,
+)
 from avatarperfect_cli.refinement.visibility import gaussian_visibility, suggestion_weights
 from avatarperfect_cli.sample.generate import fit_camera
 from avatarperfect_cli.sample.motions import turntable
@@ -45,11 +51,16 @@ def reference_view(avatar: Avatar, size: int) -> PoseFile:
     return PoseFile(REFERENCE_POSE, REFERENCE_TRANSL, fit_camera(means.detach().double().numpy(), size))
 
 
-def back_is_unseen(every: int) -> torch.Tensor:
-    """(N,) float64 V: 1 for the Gaussians on the front of the body (canonical normal towards +Z), 0 on the back."""
+def canonical_normals(every: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Canonical positions and unit normals of every `every`-th template vertex (the avatar's Gaussians)."""
     template = load_body_template("anny")
     normals, _ = vertex_normals_and_areas(template.vertices.float(), template.faces.long())
-    return (normals[::every, 2] > 0).double()
+    return template.vertices[::every].float(), normals[::every]
+
+
+def back_is_unseen(every: int) -> torch.Tensor:
+    """(N,) float64 V: 1 for the Gaussians on the front of the body (canonical normal towards +Z), 0 on the back."""
+    return (canonical_normals(every)[1][:, 2] > 0).double()
 
 
 def joints_box_centre(avatar: Avatar, body_pose: torch.Tensor, transl: torch.Tensor) -> torch.Tensor:
@@ -255,8 +266,9 @@ def setup(small_avatar: Avatar):
 
 
 def run(setup, **settings) -> suggest.Suggestion:
+    """A small search; the paper's objective (no exposure weighting) unless `settings` say otherwise."""
     avatar, visibility, prior, capsules, reference = setup
-    config = SuggestConfig(**{"starts": 2, "candidates": 6, "steps": 4, "resolution": 40, **settings})
+    config = SuggestConfig(**{"starts": 2, "candidates": 6, "steps": 4, "resolution": 40, "exposure_poses": 0, **settings})
     return suggest_view(avatar, visibility, prior, capsules, reference, config)
 
 
@@ -328,3 +340,36 @@ def test_an_unseen_back_is_shown_from_behind(setup, optimised, camera_only, mode
 def test_unknown_body_pose_mode_is_refused(setup) -> None:
     with pytest.raises(ValueError, match="body_pose"):
         run(setup, body_pose="dance")
+
+
+# ---------------------------------------------------------------- weighting by what animations show
+
+
+@pytest.fixture(scope="module")
+def exposure(setup) -> torch.Tensor:
+    avatar, _, prior, capsules, reference = setup
+    view = OrbitView(avatar, prior, reference, SuggestConfig().fill)
+    return animation_exposure(view, prior, capsules, reference.camera, poses=24, seed=0)
+
+
+def test_animations_show_the_soles_less_than_the_chest(exposure: torch.Tensor) -> None:
+    """Gaussians facing the floor at the feet are shown far less by natural poses seen from the camera's
+    height than those on the front of the chest (on this coarse avatar about a third as much)."""
+    positions, normals = canonical_normals(every=8)
+    height = positions[:, 1]
+    low, high = float(height.min()), float(height.max())
+    soles = (normals[:, 1] < -0.8) & (height < low + 0.05)
+    chest = (normals[:, 2] > 0.8) & (height > low + 0.7 * (high - low)) & (height < low + 0.8 * (high - low))
+    assert soles.sum() >= 5 and chest.sum() >= 5
+    assert float(exposure[soles].mean()) < 0.5 * float(exposure[chest].mean())
+    relevance = exposure_relevance(exposure)
+    assert float(relevance.max()) == 1.0 and float(relevance.min()) >= 0.0
+    assert float(relevance[soles].mean()) < float(relevance[chest].mean())
+
+
+def test_objective_with_exposure_is_the_documented_sum(setup, exposure: torch.Tensor) -> None:
+    """sum_i clip(V_i - mean V) * r_i * sigma_i for the returned pose, with E measured as the search does."""
+    avatar, visibility = setup[:2]
+    result = run(setup, body_pose="optimise", seed=0, exposure_poses=24)
+    weights = suggestion_weights(visibility) * exposure_relevance(exposure)
+    assert result.objective == pytest.approx(float((weights * gaussian_visibility(avatar, result.pose)).sum()), rel=1e-3)
