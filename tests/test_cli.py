@@ -84,6 +84,7 @@ def test_bad_background_is_rejected(tmp_path: Path):
         (["train-initial", "{tmp}/data", "{tmp}/ws", "--sh-degree", "4"], "--sh-degree must be from 0 to 3, got 4"),
         (["make-sample", "{tmp}/sample", "--resolution", "1"], "--resolution must be from 16 to 8192, got 1"),
         (["make-sample", "{tmp}/sample", "--resolution", "30000"], "--resolution must be from 16 to 8192, got 30000"),
+        (["suggest", "{tmp}/ws", "--exposure-poses", "-1"], "--exposure-poses must be at least 0, got -1"),
     ],
 )
 def test_out_of_range_options_are_one_line(tmp_path: Path, arguments: list[str], problem: str):
