@@ -37,6 +37,7 @@ import os
 import re
 import shutil
 import tempfile
+import threading
 import zipfile
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
@@ -522,6 +523,12 @@ def _read_image(path: Path, camera: Camera) -> np.ndarray:
     return image
 
 
+# np.load parses a .npy header with ast.literal_eval, and CPython 3.11's AST constructor keeps one recursion
+# counter per interpreter: two threads parsing at once can fail with "SystemError: AST constructor recursion
+# depth mismatch" (python/cpython#106905; seen once in CI while the frame loader's threads read masks).
+_NPY_HEADER_LOCK = threading.Lock()
+
+
 def _read_mask(masks_dir: Path, frame: int, camera: Camera) -> np.ndarray:
     """(H, W) bool subject mask of `frame`, from mask_%04d.npy (0/1) or else mask_%04d.png (0/255)."""
     npy_path = masks_dir / f"mask_{frame:04d}.npy"
@@ -529,7 +536,8 @@ def _read_mask(masks_dir: Path, frame: int, camera: Camera) -> np.ndarray:
     if npy_path.is_file():
         path, on_value = npy_path, 1
         try:
-            mask = np.load(npy_path, allow_pickle=False)
+            with _NPY_HEADER_LOCK:
+                mask = np.load(npy_path, allow_pickle=False)
         except (OSError, ValueError, EOFError):
             raise InputFileError(path, "mask unreadable") from None
     elif png_path.is_file():
