@@ -27,6 +27,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 
@@ -100,6 +101,16 @@ class Suggestion:
     objective: float
 
 
+class FramedView(NamedTuple):
+    """The body posed and turned for one orbit view: means (N, 3) metres and quats (N, 4) in the world frame
+    of `camera` (the rendering camera, on the avatar's device), and the view's pose file (CPU)."""
+
+    means: torch.Tensor
+    quats: torch.Tensor
+    camera: Camera
+    pose: PoseFile
+
+
 class OrbitView:
     """Poses the avatar by a latent z and views it from orbit angles, with automatic framing.
 
@@ -126,14 +137,9 @@ class OrbitView:
         azimuth, elevation = azimuth.to(self.device), elevation.to(self.device)
         return rotation_about(self.up, azimuth) @ rotation_about(self.right, -elevation)
 
-    def render(
-        self, latent: torch.Tensor, azimuth: torch.Tensor, elevation: torch.Tensor, camera: Camera, colors: torch.Tensor
-    ) -> tuple[torch.Tensor, PoseFile]:
-        """The (H, W, C) image of per-Gaussian `colors` (N, C, on the avatar's device) on black, on the
-        avatar's device, and the pose file of the view (on the CPU).
-
-        Differentiable w.r.t. latent and the angles. `camera` gives the intrinsics and size.
-        """
+    def frame(self, latent: torch.Tensor, azimuth: torch.Tensor, elevation: torch.Tensor, camera: Camera) -> FramedView:
+        """Pose the body by `latent`, turn it by the orbit angles and frame it: what `render` rasterizes, and
+        the view's pose file. Differentiable w.r.t. latent and the angles. `camera` gives the intrinsics and size."""
         body_pose = self.body_pose(latent)
         transl = self.reference.transl
         posed_pose, posed_transl = body_pose.to(self.device), transl.to(self.device)
@@ -150,7 +156,6 @@ class OrbitView:
         # the camera sits at the detached distance; moving the body by the difference (zero in value) lets
         # the gradient see that a pose which widens the body pushes the camera back
         means = means + (distance - distance.detach()) * self.forward
-        out = rasterization(means, quats, self.avatar.scales, self.avatar.opacities, colors, base)
         with torch.no_grad():
             view_rotation = self.base_rotation @ orbit.detach().T
             eye = center + orbit.detach() @ (base.center.float() - center)
@@ -158,8 +163,16 @@ class OrbitView:
             view[:3, :3] = view_rotation
             view[:3, 3] = -view_rotation @ eye
         view_camera = Camera(camera.K, view.cpu(), camera.width, camera.height)
-        pose = PoseFile(body_pose.detach().clone(), transl.clone(), view_camera)
-        return out.image, pose
+        return FramedView(means, quats, base, PoseFile(body_pose.detach().clone(), transl.clone(), view_camera))
+
+    def render(
+        self, latent: torch.Tensor, azimuth: torch.Tensor, elevation: torch.Tensor, camera: Camera, colors: torch.Tensor
+    ) -> tuple[torch.Tensor, PoseFile]:
+        """The (H, W, C) image of per-Gaussian `colors` (N, C, on the avatar's device) on black, on the
+        avatar's device, and the pose file of the view (on the CPU). Differentiable as `frame`."""
+        framed = self.frame(latent, azimuth, elevation, camera)
+        out = rasterization(framed.means, framed.quats, self.avatar.scales, self.avatar.opacities, colors, framed.camera)
+        return out.image, framed.pose
 
     def _body_center(self, body_pose: torch.Tensor, transl: torch.Tensor) -> torch.Tensor:
         """(3,) centre of the posed joints' bounding box, metres."""
@@ -184,14 +197,13 @@ def animation_exposure(
     the search draws the same starts with or without it."""
     generator = torch.Generator().manual_seed(seed + EXPOSURE_SEED_OFFSET)
     total = torch.zeros(len(view.avatar), dtype=torch.float64, device=view.device)
-    blank = torch.zeros(len(view.avatar), 1, device=view.device)
     with torch.no_grad():
         for _ in range(poses):
             latent = prior.sample_latent(generator)
             if capsules.intersecting_pairs(view.body_pose(latent)):
                 latent = prior.initial_latent()
             azimuth = torch.tensor(2 * math.pi * float(torch.rand((), generator=generator)))
-            _, pose = view.render(latent, azimuth, torch.tensor(0.0), camera, blank)
+            pose = view.frame(latent, azimuth, torch.tensor(0.0), camera).pose
             total += gaussian_visibility(view.avatar, pose)
     return total / poses
 

@@ -148,6 +148,23 @@ def test_orbit_pose_file_camera_renders_the_same_image(small_avatar: Avatar, azi
 # ---------------------------------------------------------------- gradients
 
 
+def test_frame_gives_the_pose_file_render_gives_without_rasterizing(small_avatar: Avatar, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`animation_exposure` needs only the views' pose files: `frame` must give exactly `render`'s, and
+    must not rasterize."""
+    reference = reference_view(small_avatar, 48)
+    view = OrbitView(small_avatar, load_pose_prior("builtin", REFERENCE_POSE), reference, fill=0.9)
+    latent = 0.7 * torch.randn(32, generator=torch.Generator().manual_seed(3))
+    angles = torch.tensor(2.0), torch.tensor(-0.3)
+    colors = torch.ones(len(small_avatar), 1)
+    with torch.no_grad():
+        _, rendered = view.render(latent, *angles, reference.camera, colors)
+        monkeypatch.setattr(suggest, "rasterization", lambda *args, **kwargs: pytest.fail("frame rasterized"))
+        framed = view.frame(latent, *angles, reference.camera).pose
+    assert torch.equal(framed.body_pose, rendered.body_pose) and torch.equal(framed.transl, rendered.transl)
+    assert torch.equal(framed.camera.world_to_camera, rendered.camera.world_to_camera)
+    assert torch.equal(framed.camera.K, rendered.camera.K)
+
+
 def test_objective_gradient_is_the_chain_rule_through_the_posed_gaussians(
     monkeypatch: pytest.MonkeyPatch, small_avatar: Avatar
 ) -> None:
