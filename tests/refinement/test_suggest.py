@@ -145,9 +145,6 @@ def test_orbit_pose_file_camera_renders_the_same_image(small_avatar: Avatar, azi
     assert float(reach) == pytest.approx(0.9, abs=1e-3)
 
 
-# ---------------------------------------------------------------- gradients
-
-
 def test_frame_gives_the_pose_file_render_gives_without_rasterizing(small_avatar: Avatar, monkeypatch: pytest.MonkeyPatch) -> None:
     """`animation_exposure` needs only the views' pose files: `frame` must give exactly `render`'s, and
     must not rasterize."""
@@ -163,6 +160,9 @@ def test_frame_gives_the_pose_file_render_gives_without_rasterizing(small_avatar
     assert torch.equal(framed.body_pose, rendered.body_pose) and torch.equal(framed.transl, rendered.transl)
     assert torch.equal(framed.camera.world_to_camera, rendered.camera.world_to_camera)
     assert torch.equal(framed.camera.K, rendered.camera.K)
+
+
+# ---------------------------------------------------------------- gradients
 
 
 def test_objective_gradient_is_the_chain_rule_through_the_posed_gaussians(
