@@ -339,6 +339,10 @@ def refine(
     delete_seen: bool = typer.Option(
         False, "--delete-seen", help="Background strokes delete every Gaussian centred under them, also ones the video saw well."
     ),
+    template_skinning: float = typer.Option(
+        0.5, help="How far the skinning weights move to the body template's at each Gaussian first (0: keep the learned ones)."
+    ),
+    smpl_model_dir: Optional[Path] = typer.Option(None, help="Folder with your licensed SMPL model files (SMPL avatars)."),
     device: str = typer.Option("auto", help=DEVICE_HELP),
 ) -> None:
     """Re-optimise the avatar on the video plus every painted image (writes the next avatar iteration)."""
@@ -352,7 +356,7 @@ def refine(
         share = None if uniform_edits else new_edit_share
         settings = stage.RefineSettings(
             iterations, edit_probability, seed, protect_seen=not delete_seen, new_edit_share=share, keep_shapes=keep_shapes,
-            device=torch_device,
+            template_skinning=template_skinning, smpl_model_dir=smpl_model_dir, device=torch_device,
         )  # fmt: skip
         stage.refine(workspace, settings)
 

@@ -154,6 +154,11 @@ class Avatar:
         """(N, 24) skinning weights, rows summing to 1."""
         return torch.softmax(self.params["skin_logits"], dim=-1)
 
+    def set_skin_weights(self, weights: torch.Tensor) -> None:
+        """Replace the skinning weights by `weights` (N, 24), rows summing to 1 (logits as `from_template`'s)."""
+        with torch.no_grad():
+            self.params["skin_logits"].copy_(torch.log(weights.to(self.params["skin_logits"]) + TEMPLATE_WEIGHT_FLOOR))
+
     @classmethod
     def from_template(
         cls,

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 from avatarperfect_cli.body.base import NUM_JOINTS, SMPL_JOINT_NAMES, SMPL_PARENTS, BodyTemplate
 from avatarperfect_cli.body.skeleton import (
@@ -46,6 +48,16 @@ def load_body_template(
     raise AvatarPerfectError(f"unknown body model {name!r}; choose one of {', '.join(BODY_MODELS)}")
 
 
+def load_described_template(description: Mapping[str, Any], smpl_model_dir: Path | None = None) -> BodyTemplate:
+    """The template an avatar's `body_model` metadata describes ({"name": "anny", "phenotype": {...}} or
+    {"name": "smpl", "betas": [...]}, as train-initial writes it); SMPL also needs `smpl_model_dir`."""
+    if "name" not in description:
+        raise AvatarPerfectError("the avatar does not name its body model (an avatar from before it was recorded)")
+    return load_body_template(
+        str(description["name"]), smpl_model_dir=smpl_model_dir, phenotype=description.get("phenotype"), betas=description.get("betas")
+    )
+
+
 __all__ = [
     "BODY_MODELS",
     "NUM_JOINTS",
@@ -56,6 +68,7 @@ __all__ = [
     "blend_transforms",
     "forward_kinematics",
     "load_body_template",
+    "load_described_template",
     "matrix_to_quaternion",
     "quaternion_to_matrix",
     "skin_gaussians",

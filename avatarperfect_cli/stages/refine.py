@@ -5,7 +5,9 @@ background region, in that edit's pose, are deleted (once per edit: the edits an
 applied are recorded in its history entry). Then training continues on the video frames and the
 edits (an edit drawn with probability `edit_probability`, its loss masked by M_k; background pixels
 of an edit supervise towards the step's random background colour, so Gaussians there must vanish).
-Skinning weights learn from step 0: floaters at the armpits and crotch come from wrong skinning.
+Floaters at the armpits and crotch come from wrong skinning, so before training every Gaussian's skinning
+weights move part of the way to the body template's at its canonical position (`template_skinning`;
+body/template_skinning.py), and they learn from there from step 0.
 
 The new avatar is written as ws/avatar/NNN.ply (NNN one past the highest iteration so far) and then
 committed by the manifest; every earlier iteration stays. `revert` makes an earlier one current.
@@ -21,6 +23,8 @@ import torch
 from rich.console import Console
 
 from avatarperfect_cli.avatar.model import Avatar
+from avatarperfect_cli.body import load_described_template
+from avatarperfect_cli.body.template_skinning import template_skin_weights
 from avatarperfect_cli.devices import CPU
 from avatarperfect_cli.errors import AvatarPerfectError
 from avatarperfect_cli.io.workspace import Workspace, locked_workspace
@@ -40,6 +44,9 @@ class RefineSettings:
     (None: every edit equally, as the paper; see `edit_draw_weights`);
     keep_shapes: edit steps leave the Gaussians' scales and rotations alone (`SHAPE_PARAMETERS`): the
     training frames keep their look, at some cost to what the edits repair (docs/refine.md);
+    template_skinning: how far each Gaussian's skinning weights move to the body template's at its canonical
+    position before training (1: the template's, 0: the learned ones kept); smpl_model_dir: the SMPL
+    files, for SMPL avatars;
     device: where the avatar is trained (the result is written from the CPU)."""
 
     iterations: int = 500
@@ -48,6 +55,8 @@ class RefineSettings:
     protect_seen: bool = True  # background strokes keep the Gaussians the video saw at least averagely
     new_edit_share: float | None = 0.5
     keep_shapes: bool = False
+    template_skinning: float = 0.5
+    smpl_model_dir: Path | None = None
     device: torch.device = CPU
 
 
@@ -129,6 +138,8 @@ def refine(workspace_root: Path, settings: RefineSettings | None = None, progres
         raise AvatarPerfectError(f"--edit-probability must be in [0, 1], got {settings.edit_probability}")
     if settings.new_edit_share is not None and not 0.0 < settings.new_edit_share <= 1.0:
         raise AvatarPerfectError(f"--new-edit-share must be in (0, 1], got {settings.new_edit_share}")
+    if not 0.0 <= settings.template_skinning <= 1.0:
+        raise AvatarPerfectError(f"--template-skinning must be in [0, 1], got {settings.template_skinning}")
     console = Console(stderr=True, quiet=not progress)
     with locked_workspace(workspace_root) as workspace:
         start = time.perf_counter()
@@ -140,6 +151,10 @@ def refine(workspace_root: Path, settings: RefineSettings | None = None, progres
         if settings.protect_seen and any(bool(edit.background().any()) for edit in new_edits):
             protected = seen_by_the_video(workspace, avatar, progress)
         avatar, deleted = delete_background(avatar, new_edits, protected)
+        if settings.template_skinning > 0.0:
+            template = load_described_template(avatar.body_model, settings.smpl_model_dir)
+            template_weights = template_skin_weights(template, avatar.params["means"])
+            avatar.set_skin_weights(torch.lerp(avatar.skin_weights.detach(), template_weights, settings.template_skinning))
         video = load_video(workspace)
         console.print(
             f"refining avatar {workspace.iteration:03d} ({len(avatar):,} Gaussians after deleting {deleted:,}) "
@@ -164,6 +179,7 @@ def refine(workspace_root: Path, settings: RefineSettings | None = None, progres
                 "edit_probability": settings.edit_probability,
                 "new_edit_share": settings.new_edit_share,
                 "keep_shapes": settings.keep_shapes,
+                "template_skinning": settings.template_skinning,
                 "seed": settings.seed,
                 "seconds": round(seconds, 1),
                 "gaussians": len(avatar),

@@ -159,3 +159,11 @@ def test_inconsistent_avatar_data_is_an_input_error(edit) -> None:
     edit(gaussians)
     with pytest.raises(InputFileError, match="^bad.ply: "):
         Avatar.from_gaussians(gaussians, source="bad.ply")
+
+
+def test_set_skin_weights_replaces_the_weights() -> None:
+    avatar = Avatar.from_template(octahedron_template())
+    weights = torch.softmax(torch.randn(6, 24, generator=torch.Generator().manual_seed(5)), dim=-1)
+    avatar.set_skin_weights(weights)
+    torch.testing.assert_close(avatar.skin_weights, weights, atol=1e-5, rtol=0)
+    assert isinstance(avatar.params["skin_logits"], torch.nn.Parameter)

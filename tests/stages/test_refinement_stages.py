@@ -353,8 +353,39 @@ def test_refine_config_continues_the_fit_gently():
     assert config.iterations == 300 and config.densify.refine_stop == 0
 
 
-@pytest.mark.parametrize("option", [["--new-edit-share", "0"], ["--new-edit-share", "1.5"], ["--edit-probability", "-0.1"]])
+@pytest.mark.parametrize(
+    "option", [["--new-edit-share", "0"], ["--new-edit-share", "1.5"], ["--edit-probability", "-0.1"], ["--template-skinning", "1.5"]]
+)
 def test_refine_refuses_bad_shares_in_one_line(workspace: Path, option: list):
     before = snapshot(workspace)
     assert option[0] in one_line_error(invoke("refine", workspace, *option))
     assert snapshot(workspace) == before
+
+
+def test_refine_moves_the_skinning_to_the_template_by_the_given_share(workspace: Path):
+    from avatarperfect_cli.body import load_described_template
+    from avatarperfect_cli.body.template_skinning import template_skin_weights
+
+    initial = Avatar.load(workspace / "avatar" / "000.ply")
+    initial.set_skin_weights(torch.softmax(torch.randn(len(initial), 24, generator=torch.Generator().manual_seed(0)), -1))
+    initial.save(workspace / "avatar" / "000.ply")  # weights learned wrong everywhere
+    initial = Avatar.load(workspace / "avatar" / "000.ply")
+    derived = template_skin_weights(load_described_template(initial.body_model), initial.params["means"])
+    assert (derived - initial.skin_weights).abs().sum(1).mean() > 1.0
+    expected = {"1": derived, "0.5": 0.5 * (initial.skin_weights + derived), "0": initial.skin_weights}
+    for iteration, (share, weights) in enumerate(expected.items(), start=1):
+        assert invoke("refine", workspace, "--revert-to", "0").exit_code == 0
+        assert invoke("refine", workspace, "--iterations", "1", "--template-skinning", share).exit_code == 0
+        refined = Avatar.load(workspace / "avatar" / f"{iteration:03d}.ply")
+        assert open_workspace(workspace).manifest["history"][-1]["template_skinning"] == float(share)
+        torch.testing.assert_close(refined.skin_weights, weights, atol=2e-3, rtol=0)  # one learning step from them
+
+
+def test_refine_of_an_avatar_without_its_body_model_is_one_line(workspace: Path):
+    avatar = Avatar.load(workspace / "avatar" / "000.ply")
+    avatar.body_model = {}
+    avatar.save(workspace / "avatar" / "000.ply")
+    before = snapshot(workspace)
+    assert "does not name its body model" in one_line_error(invoke("refine", workspace, "--iterations", "1"))
+    assert snapshot(workspace) == before
+    assert invoke("refine", workspace, "--iterations", "1", "--template-skinning", "0").exit_code == 0
