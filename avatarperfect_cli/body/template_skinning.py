@@ -3,7 +3,7 @@
 An avatar's Gaussians start on the template's vertices with the template's weights, then move and learn
 their own. Learned from a monocular video's few poses, the weights fit those poses and go wrong where
 the video saw little (the armpits and crotch); the template's weights at a Gaussian's canonical position
-are what the body model says it should follow. On `default` seed 0 (docs/study.md, eleventh session),
+are what the body model says it should follow. On `default` seed 0 (docs/refine.md, eleventh session),
 giving every Gaussian of the initial avatar the template's weights raised held-out PSNR by 0.40 dB (the
 crotch's error fell by 41%) and cost the training frames 1.8 dB; refining from there with the first
 edit ended 0.26 dB below the initial avatar on the training frames and 1.20 dB above it held out
