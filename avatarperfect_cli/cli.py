@@ -340,7 +340,10 @@ def refine(
         False, "--delete-seen", help="Background strokes delete every Gaussian centred under them, also ones the video saw well."
     ),
     template_skinning: float = typer.Option(
-        0.5, help="How far the skinning weights move to the body template's at each Gaussian first (0: keep the learned ones)."
+        1.0, help="Most of the way the skinning weights move to the body template's at each Gaussian first (0: keep the learned ones)."
+    ),
+    template_shift_mm: float = typer.Option(
+        3.0, help="...but no further than shifts a Gaussian this far in any training frame, mm (inf: no limit)."
     ),
     smpl_model_dir: Optional[Path] = typer.Option(None, help="Folder with your licensed SMPL model files (SMPL avatars)."),
     device: str = typer.Option("auto", help=DEVICE_HELP),
@@ -356,7 +359,8 @@ def refine(
         share = None if uniform_edits else new_edit_share
         settings = stage.RefineSettings(
             iterations, edit_probability, seed, protect_seen=not delete_seen, new_edit_share=share, keep_shapes=keep_shapes,
-            template_skinning=template_skinning, smpl_model_dir=smpl_model_dir, device=torch_device,
+            template_skinning=template_skinning, template_shift=template_shift_mm / 1e3, smpl_model_dir=smpl_model_dir,
+            device=torch_device,
         )  # fmt: skip
         stage.refine(workspace, settings)
 

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from avatarperfect_cli.body.base import BodyTemplate
+from avatarperfect_cli.body.skeleton import skin_points
 
 K_NEAREST = 8
 FALLOFF_FLOOR = 5e-3  # metres; a point closer than this to its nearest vertex blends like one this far
@@ -42,6 +43,25 @@ def template_skin_weights(template: BodyTemplate, points: torch.Tensor, k: int =
     blend /= blend.sum(axis=1, keepdims=True)
     weights = np.einsum("nk,nkj->nj", blend, template.weights.detach().cpu().double().numpy()[indices])
     return torch.from_numpy(weights / weights.sum(axis=1, keepdims=True)).float().to(points.device)
+
+
+def bounded_pull_shares(
+    means: torch.Tensor, weights: torch.Tensor, target: torch.Tensor, transforms: torch.Tensor, max_share: float,
+    max_shift: float, poses_per_batch: int = 8,
+) -> torch.Tensor:
+    """(N,) how far each point's skinning weights may move from `weights` toward `target` (0: stay, 1: the
+    target's) so that its skinned position moves at most `max_shift` metres in every pose:
+    min(max_share, max_shift / d), d its largest displacement over the poses when moved the whole way.
+    Skinning is linear in the weights, so a share s moves the point by exactly s times that displacement.
+
+    means: (N, 3) canonical, metres; weights, target: (N, 24) (rows sum to 1); transforms: (T, 24, 4, 4)
+    the poses' joint transforms (`forward_kinematics`); float32 result on `means`' device."""
+    shift = weights.new_zeros(len(means))
+    change = (target - weights).detach()
+    with torch.no_grad():
+        for batch in transforms.split(poses_per_batch):
+            shift = torch.maximum(shift, skin_points(means.detach(), change, batch).norm(dim=-1).amax(dim=0))
+    return (max_shift / shift.clamp_min(torch.finfo(shift.dtype).tiny)).clamp(max=max_share).float()
 
 
 def nearest_vertices(points: np.ndarray, vertices: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:

@@ -8,7 +8,14 @@ import pytest
 import torch
 
 from avatarperfect_cli.body import BodyTemplate, load_body_template, load_described_template
-from avatarperfect_cli.body.template_skinning import FALLOFF_FLOOR, GRID_CELL, nearest_vertices, template_skin_weights
+from avatarperfect_cli.body.skeleton import forward_kinematics, skin_points
+from avatarperfect_cli.body.template_skinning import (
+    FALLOFF_FLOOR,
+    GRID_CELL,
+    bounded_pull_shares,
+    nearest_vertices,
+    template_skin_weights,
+)
 from avatarperfect_cli.errors import AvatarPerfectError
 
 
@@ -76,3 +83,34 @@ def test_described_template_is_the_one_train_initial_used():
         load_described_template({})
     with pytest.raises(AvatarPerfectError, match="--smpl-model-dir"):
         load_described_template({"name": "smpl", "betas": [0.0] * 10})
+
+
+def random_poses(count: int, seed: int) -> torch.Tensor:
+    """(count, 24, 4, 4) joint transforms of random poses (up to 0.6 rad a joint) of a random skeleton."""
+    generator = torch.Generator().manual_seed(seed)
+    rest_joints = torch.rand(24, 3, generator=generator, dtype=torch.float64) * torch.tensor([0.6, 1.6, 0.3], dtype=torch.float64)
+    body_pose = (torch.rand(count, 24, 3, generator=generator, dtype=torch.float64) - 0.5) * 1.2
+    return forward_kinematics(body_pose, rest_joints, torch.zeros(count, 3, dtype=torch.float64))
+
+
+def test_bounded_pull_moves_no_point_further_than_the_bound_in_any_pose():
+    """Brute force: skin every point with the pulled weights in every pose and measure the shift; the
+    points held back by the bound reach it exactly (skinning is linear in the weights)."""
+    template = random_template(200, seed=5)
+    generator = torch.Generator().manual_seed(6)
+    means = template.vertices + torch.randn(200, 3, generator=generator, dtype=torch.float64) * 0.01
+    learned = torch.softmax(torch.randn(200, 24, generator=generator, dtype=torch.float64) * 2, dim=1)
+    target = template.weights.clone()
+    target[:20] = learned[:20]  # these agree already: the whole way is free
+    target[20:100] = torch.lerp(learned[20:100], target[20:100], 0.01)  # these differ little
+    poses = random_poses(11, seed=7)
+    max_shift, max_share = 0.01, 0.9
+    shares = bounded_pull_shares(means, learned, target, poses, max_share, max_shift, poses_per_batch=4)
+    assert shares.shape == (200,) and shares.dtype == torch.float32
+    pulled = torch.lerp(learned, target, shares.double()[:, None])
+    shift = (skin_points(means, pulled, poses) - skin_points(means, learned, poses)).norm(dim=-1).amax(dim=0)
+    assert (shift <= max_shift * (1 + 1e-6)).all()
+    held_back = shares < max_share
+    assert 0 < held_back.sum() < 180  # the test exercises both cases
+    torch.testing.assert_close(shift[held_back], torch.full_like(shift[held_back], max_shift), rtol=1e-6, atol=0)
+    assert (shares[:20] == max_share).all() and (shares >= 0).all()

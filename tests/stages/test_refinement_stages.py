@@ -354,7 +354,8 @@ def test_refine_config_continues_the_fit_gently():
 
 
 @pytest.mark.parametrize(
-    "option", [["--new-edit-share", "0"], ["--new-edit-share", "1.5"], ["--edit-probability", "-0.1"], ["--template-skinning", "1.5"]]
+    "option", [["--new-edit-share", "0"], ["--new-edit-share", "1.5"], ["--edit-probability", "-0.1"], ["--template-skinning", "1.5"],
+               ["--template-shift-mm", "0"]]  # fmt: skip
 )
 def test_refine_refuses_bad_shares_in_one_line(workspace: Path, option: list):
     before = snapshot(workspace)
@@ -375,10 +376,38 @@ def test_refine_moves_the_skinning_to_the_template_by_the_given_share(workspace:
     expected = {"1": derived, "0.5": 0.5 * (initial.skin_weights + derived), "0": initial.skin_weights}
     for iteration, (share, weights) in enumerate(expected.items(), start=1):
         assert invoke("refine", workspace, "--revert-to", "0").exit_code == 0
-        assert invoke("refine", workspace, "--iterations", "1", "--template-skinning", share).exit_code == 0
+        result = invoke("refine", workspace, "--iterations", "1", "--template-skinning", share, "--template-shift-mm", "inf")
+        assert result.exit_code == 0
         refined = Avatar.load(workspace / "avatar" / f"{iteration:03d}.ply")
         assert open_workspace(workspace).manifest["history"][-1]["template_skinning"] == float(share)
         torch.testing.assert_close(refined.skin_weights, weights, atol=2e-3, rtol=0)  # one learning step from them
+
+
+def test_refine_pulls_the_skinning_no_further_than_the_shift_bound(workspace: Path):
+    """With wrong weights everywhere, the pull stops where a Gaussian would move 3 mm in some training frame:
+    the largest shift over the frames is the bound (give or take one learning step), and every Gaussian
+    moved toward the template's weights."""
+    from avatarperfect_cli.body import load_described_template
+    from avatarperfect_cli.body.template_skinning import template_skin_weights
+    from avatarperfect_cli.stages.workspace_data import load_video
+
+    initial = Avatar.load(workspace / "avatar" / "000.ply")
+    initial.set_skin_weights(torch.softmax(torch.randn(len(initial), 24, generator=torch.Generator().manual_seed(1)), -1))
+    initial.save(workspace / "avatar" / "000.ply")
+    initial = Avatar.load(workspace / "avatar" / "000.ply")
+    derived = template_skin_weights(load_described_template(initial.body_model), initial.params["means"])
+    assert invoke("refine", workspace, "--iterations", "1", "--template-shift-mm", "3").exit_code == 0
+    refined = Avatar.load(workspace / "avatar" / "001.ply")
+    assert open_workspace(workspace).manifest["history"][-1]["template_shift_mm"] == 3.0
+    video = load_video(open_workspace(workspace))
+    with torch.no_grad():
+        shift = torch.stack([
+            (refined.pose(pose, transl)[0] - initial.pose(pose, transl)[0]).norm(dim=1)
+            for pose, transl in zip(video.body_pose, video.transl)
+        ]).amax(dim=0)  # fmt: skip
+    assert 2.9e-3 < float(shift.max()) < 3.3e-3
+    before, after = (initial.skin_weights - derived).abs().sum(1), (refined.skin_weights - derived).abs().sum(1)
+    assert (after < before).float().mean() > 0.99
 
 
 def test_refine_of_an_avatar_without_its_body_model_is_one_line(workspace: Path):
