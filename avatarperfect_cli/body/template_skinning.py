@@ -7,7 +7,9 @@ are what the body model says it should follow. On `default` seed 0 (docs/refine.
 giving every Gaussian of the initial avatar the template's weights raised held-out PSNR by 0.40 dB (the
 crotch's error fell by 41%) and cost the training frames 1.8 dB; refining from there with the first
 edit ended 0.26 dB below the initial avatar on the training frames and 1.20 dB above it held out
-(0.33 dB keeping the learned weights).
+(0.33 dB keeping the learned weights). Most Gaussians' learned weights skin them like the template's in
+the video's poses, so refine moves each only as far as keeps it near where the video put it
+(`bounded_pull_shares`; docs/refine.md).
 
 The weight at a point blends its K_NEAREST nearest template vertices with the Gaussian falloff
 exp(-(d / (d_nearest + FALLOFF_FLOOR))^2), so a point on a vertex takes mostly that vertex's weights and
