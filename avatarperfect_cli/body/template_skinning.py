@@ -58,11 +58,10 @@ def bounded_pull_shares(
 
     means: (N, 3) canonical, metres; weights, target: (N, 24) (rows sum to 1); transforms: (T, 24, 4, 4)
     the poses' joint transforms (`forward_kinematics`); float32 result on `means`' device."""
-    shift = weights.new_zeros(len(means))
-    change = (target - weights).detach()
     with torch.no_grad():
+        change, shift = target - weights, weights.new_zeros(len(means))
         for batch in transforms.split(poses_per_batch):
-            shift = torch.maximum(shift, skin_points(means.detach(), change, batch).norm(dim=-1).amax(dim=0))
+            shift = torch.maximum(shift, skin_points(means, change, batch).norm(dim=-1).amax(dim=0))
     return (max_shift / shift.clamp_min(torch.finfo(shift.dtype).tiny)).clamp(max=max_share).float()
 
 
