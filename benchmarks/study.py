@@ -190,12 +190,12 @@ def run_condition(name: str, initial: Path, out: Path, sample: Path, subject: Sy
     for round_index in range(rounds if name != "initial" else 0):
         start = time.perf_counter()
         user_seconds = 0.0
+        round_seed = seed * rounds + round_index
         if name == "video-only":
-            refine(ws, RefineSettings(seed=seed * rounds + round_index), progress=False)
+            refine(ws, RefineSettings(seed=round_seed), progress=False)
         elif name in LOOP_CONDITIONS:
             mode, style, keep_shapes, exposure_poses = LOOP_CONDITIONS[name]
             visibility(ws, progress=False)
-            round_seed = seed * rounds + round_index
             search = SuggestConfig(body_pose=mode, exposure_poses=exposure_poses, seed=round_seed)
             suggest(ws, SuggestSettings(search), progress=False)
             user_start = time.perf_counter()
