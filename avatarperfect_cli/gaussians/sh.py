@@ -5,9 +5,9 @@ from __future__ import annotations
 import torch
 
 SH_C0 = 0.28209479177387814
-_C1 = 0.4886025119029199
-_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
-_C3 = (
+SH_C1 = 0.4886025119029199
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+SH_C3 = (
     -0.5900435899266435,
     2.890611442640554,
     -0.4570457994644658,
@@ -23,25 +23,25 @@ def sh_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
     x, y, z = dirs.unbind(-1)
     basis = [torch.full_like(x, SH_C0)]
     if degree >= 1:
-        basis += [-_C1 * y, _C1 * z, -_C1 * x]
+        basis += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
     if degree >= 2:
         xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
         basis += [
-            _C2[0] * xy,
-            _C2[1] * yz,
-            _C2[2] * (2.0 * zz - xx - yy),
-            _C2[3] * xz,
-            _C2[4] * (xx - yy),
+            SH_C2[0] * xy,
+            SH_C2[1] * yz,
+            SH_C2[2] * (2.0 * zz - xx - yy),
+            SH_C2[3] * xz,
+            SH_C2[4] * (xx - yy),
         ]
     if degree >= 3:
         basis += [
-            _C3[0] * y * (3.0 * xx - yy),
-            _C3[1] * xy * z,
-            _C3[2] * y * (4.0 * zz - xx - yy),
-            _C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
-            _C3[4] * x * (4.0 * zz - xx - yy),
-            _C3[5] * z * (xx - yy),
-            _C3[6] * x * (xx - 3.0 * yy),
+            SH_C3[0] * y * (3.0 * xx - yy),
+            SH_C3[1] * xy * z,
+            SH_C3[2] * y * (4.0 * zz - xx - yy),
+            SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
+            SH_C3[4] * x * (4.0 * zz - xx - yy),
+            SH_C3[5] * z * (xx - yy),
+            SH_C3[6] * x * (xx - 3.0 * yy),
         ]
     return torch.stack(basis, dim=-1)
 

@@ -36,7 +36,7 @@ from avatarperfect_cli.body import forward_kinematics
 from avatarperfect_cli.io.pose_json import PoseFile
 from avatarperfect_cli.refinement.collision import BodyCapsules
 from avatarperfect_cli.refinement.pose_prior import PosePrior
-from avatarperfect_cli.refinement.visibility import gaussian_visibility, suggestion_weights
+from avatarperfect_cli.refinement.visibility import suggestion_weights
 from avatarperfect_cli.render import Camera, rasterization
 from avatarperfect_cli.render.camera import MAX_MAGNIFICATION, framing_distance, rotation_about
 from avatarperfect_cli.training.optim import Adam
@@ -203,8 +203,11 @@ def animation_exposure(
             if capsules.intersecting_pairs(view.body_pose(latent)):
                 latent = prior.initial_latent()
             azimuth = torch.tensor(2 * math.pi * float(torch.rand((), generator=generator)))
-            pose = view.frame(latent, azimuth, torch.tensor(0.0), camera).pose
-            total += gaussian_visibility(view.avatar, pose)
+            framed = view.frame(latent, azimuth, torch.tensor(0.0), camera)
+            # the framed Gaussians seen by the framing camera: the pose file's view, skinned once
+            no_colors = framed.means.new_zeros(len(framed.means), 1)
+            out = rasterization(framed.means, framed.quats, view.avatar.scales, view.avatar.opacities, no_colors, framed.camera)
+            total += out.visibility.double()
     return total / poses
 
 

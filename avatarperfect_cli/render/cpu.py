@@ -33,20 +33,20 @@ class _RasterizeToPixels(torch.autograd.Function):
         height: int,
         region: np.ndarray,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        arrays = [_array(t) for t in (means2d, conics, opacities, features, background)]
-        arrays.append(kernels.gaussian_spans(arrays[1], arrays[2], _array(drawn)))
+        means2d_np, conics_np, opacities_np, drawn_np = (_array(t) for t in (means2d, conics, opacities, drawn))
+        spans = kernels.gaussian_spans(conics_np, opacities_np, drawn_np)
         depth_array = _array(depths)
         depth_keys = depth_array.view(np.uint32 if depth_array.itemsize == 4 else np.uint64)
+        n_threads = numba.get_num_threads()
         offsets, tile_gaussians = kernels.bin_gaussians(
-            _array(means2d), _array(extents), depth_keys, 8 * depth_array.itemsize, _array(drawn),
-            width, height, TILE_SIZE, region, numba.get_num_threads(),
+            means2d_np, _array(extents), depth_keys, 8 * depth_array.itemsize, drawn_np,
+            width, height, TILE_SIZE, region, n_threads,
         )  # fmt: skip
-        schedule = kernels.tile_schedule(offsets)
-        layout = (offsets, tile_gaussians, schedule, width, height, TILE_SIZE, numba.get_num_threads())
-        image, transmittance, last, weights = kernels.rasterize_forward(*arrays, *layout, region)
+        packed = kernels.pack_intersections(means2d_np, conics_np, opacities_np, _array(features), spans, tile_gaussians, n_threads)
+        layout = (_array(background), offsets, kernels.tile_schedule(offsets), width, height, TILE_SIZE, n_threads)
+        image, transmittance, last, weights = kernels.rasterize_forward(packed, *layout, region)
         visibility = kernels.sum_per_gaussian(weights[:, None], tile_gaussians, means2d.shape[0])[:, 0]
-        ctx.arrays = arrays
-        ctx.layout = layout
+        ctx.packed, ctx.layout, ctx.tile_gaussians, ctx.n_gaussians = packed, layout, tile_gaussians, means2d.shape[0]
         ctx.transmittance = transmittance
         ctx.last = last
         visibility_t = torch.from_numpy(visibility)
@@ -57,15 +57,14 @@ class _RasterizeToPixels(torch.autograd.Function):
     def backward(  # type: ignore[override]
         ctx: Any, grad_image: torch.Tensor, grad_alpha: torch.Tensor, _grad_visibility: torch.Tensor
     ) -> tuple[torch.Tensor | None, ...]:
-        means2d, _, _, _, background, _ = ctx.arrays
         records = kernels.rasterize_backward(
-            *ctx.arrays, *ctx.layout, ctx.transmittance, ctx.last, _array(grad_image), _array(grad_alpha)
+            ctx.packed, *ctx.layout, ctx.transmittance, ctx.last, _array(grad_image), _array(grad_alpha)
         )
-        grads = torch.from_numpy(kernels.sum_per_gaussian(records, ctx.layout[1], means2d.shape[0]))
+        grads = torch.from_numpy(kernels.sum_per_gaussian(records, ctx.tile_gaussians, ctx.n_gaussians))
         grad_background = None
         if ctx.needs_input_grad[4]:
             grad_background = torch.from_numpy(
-                np.einsum("hw,hwc->c", ctx.transmittance, _array(grad_image)).astype(background.dtype)
+                np.einsum("hw,hwc->c", ctx.transmittance, _array(grad_image)).astype(ctx.packed.dtype)
             )
         return (
             grads[:, kernels.G_MEAN_X : kernels.G_MEAN_Y + 1],

@@ -9,6 +9,10 @@ Each tile keeps its Gaussians in depth order. A tile loops over its Gaussians an
 only the pixels inside the Gaussian's ellipse {sigma <= log(255 o)} (outside it alpha < 1/255), which
 is exact and several times faster than testing every pixel against every Gaussian.
 
+Each tile-Gaussian pair gets one packed row (`pack_intersections`) in the tiles' compositing order, so
+the compositing loops of both passes read memory in sequence rather than gather every Gaussian's fields
+from six arrays (about 9% off the forward kernel, gather included).
+
 Tiles are dealt round-robin, by decreasing cost, to one `prange` iteration per thread: numba's static
 split of a plain `prange` over tiles leaves one thread idle on the busy tiles of a human figure.
 Gradients and visibility go to per-intersection records (one row per tile-Gaussian pair), reduced per
@@ -77,6 +81,28 @@ def _row_span(mx, dy, b, span, x_first, x_last):
     lo = math.ceil(mx + (b * dy - root) * span[S_INV_A] - 0.5)
     hi = math.floor(mx + (b * dy + root) * span[S_INV_A] - 0.5)
     return max(lo, x_first), min(hi, x_last)
+
+
+@njit(cache=True, inline="always")
+def _compositing_constants(like):
+    """0.5, 1, ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN and 0 in the dtype of the array `like`. A Python
+    float is float64 to numba, and one in an expression lifts a float32 kernel's arithmetic (its exp too)
+    to float64: typed constants take about 12% off the forward kernel and 15% off the backward."""
+    values = np.empty(6, dtype=like.dtype)
+    values[0], values[1], values[2], values[3], values[4], values[5] = 0.5, 1.0, ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN, 0.0
+    return values[0], values[1], values[2], values[3], values[4], values[5]
+
+
+@njit(cache=True, inline="always")
+def _pixel_centres(first, out):
+    """out[i] = first + i + 0.5: the centres of a tile's pixel columns or rows, in out's dtype."""
+    for i in range(out.shape[0]):
+        out[i] = first + i + 0.5
+
+
+# Columns of `pack_intersections`' rows: the Gaussian's 2D mean, conic, opacity, span constants
+# (`gaussian_spans`) and then its features.
+P_MEAN_X, P_MEAN_Y, P_CONIC_A, P_CONIC_B, P_CONIC_C, P_OPACITY, P_SPAN, P_FEATURES = 0, 1, 2, 3, 4, 5, 6, 10
 
 
 RADIX_BITS = 11
@@ -169,6 +195,25 @@ def bin_gaussians(means2d, extents, depth_keys, key_bits, drawn, width, height, 
     return offsets, tile_gaussians
 
 
+@njit(cache=True, parallel=True)
+def pack_intersections(means2d, conics, opacities, features, spans, tile_gaussians, n_threads):
+    """(n_intersections, P_FEATURES + C) rows, row j holding Gaussian tile_gaussians[j]'s 2D mean, conic,
+    opacity, span constants and features (columns P_MEAN_X ... P_FEATURES)."""
+    count = tile_gaussians.shape[0]
+    packed = np.empty((count, P_FEATURES + features.shape[1]), dtype=means2d.dtype)
+    for chunk in prange(n_threads):
+        for j in range(chunk * count // n_threads, (chunk + 1) * count // n_threads):
+            g = tile_gaussians[j]
+            packed[j, P_MEAN_X], packed[j, P_MEAN_Y] = means2d[g, 0], means2d[g, 1]
+            packed[j, P_CONIC_A], packed[j, P_CONIC_B], packed[j, P_CONIC_C] = conics[g, 0], conics[g, 1], conics[g, 2]
+            packed[j, P_OPACITY] = opacities[g]
+            for k in range(4):
+                packed[j, P_SPAN + k] = spans[g, k]
+            for ch in range(features.shape[1]):
+                packed[j, P_FEATURES + ch] = features[g, ch]
+    return packed
+
+
 @njit(cache=True)
 def tile_schedule(tile_offsets):
     """Tile ids by decreasing number of Gaussians, to be dealt round-robin to the threads."""
@@ -176,38 +221,40 @@ def tile_schedule(tile_offsets):
 
 
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
-def rasterize_forward(
-    means2d, conics, opacities, features, background, spans, tile_offsets, tile_gaussians, schedule,
-    width, height, tile_size, n_threads, region,
-):  # fmt: skip
+def rasterize_forward(packed, background, tile_offsets, schedule, width, height, tile_size, n_threads, region):
     """Front-to-back compositing of the binned Gaussians.
 
-    means2d (N, 2), conics (N, 3), opacities (N,), features (N, C), background (C,),
-    spans (N, 4) from `gaussian_spans`; region as for `bin_gaussians`: pixels outside it are not
-    composited (background, transmittance 1, no Gaussian).
+    packed (n_intersections, P_FEATURES + C) from `pack_intersections`, background (C,); region as for
+    `bin_gaussians`: pixels outside it are not composited (background, transmittance 1, no Gaussian).
     Returns image (H, W, C), transmittance (H, W) left after the last Gaussian, last (H, W) int32
     index into tile_gaussians of the last Gaussian that contributed (-1: none), and
     intersection_weights (n_intersections,) = sum over the tile's pixels of T * alpha.
     """
-    dtype = means2d.dtype
-    channels = features.shape[1]
+    dtype = packed.dtype
+    half, one, alpha_max, alpha_min, transmittance_min, zero = _compositing_constants(packed)
+    channels = packed.shape[1] - P_FEATURES
+    rgb = channels == 3  # the common case, unrolled: about 5% off
     tiles_x = (width + tile_size - 1) // tile_size
     image = np.empty((height, width, channels), dtype=dtype)
     transmittance = np.empty((height, width), dtype=dtype)
     last = np.empty((height, width), dtype=np.int32)
-    intersection_weights = np.zeros(tile_gaussians.shape[0], dtype=dtype)
+    intersection_weights = np.zeros(packed.shape[0], dtype=dtype)
     for thread in prange(n_threads):
         pixels = tile_size * tile_size
         tile_T = np.empty(pixels, dtype=dtype)
         tile_color = np.empty((pixels, channels), dtype=dtype)
         tile_last = np.empty(pixels, dtype=np.int32)
         tile_done = np.empty(pixels, dtype=np.bool_)
+        centre_x = np.empty(tile_size, dtype=dtype)
+        centre_y = np.empty(tile_size, dtype=dtype)
         for k in range(thread, schedule.shape[0], n_threads):
             t = schedule[k]
             x0 = (t % tiles_x) * tile_size
             y0 = (t // tiles_x) * tile_size
             x1 = min(x0 + tile_size, width) - 1
             y1 = min(y0 + tile_size, height) - 1
+            _pixel_centres(x0, centre_x)
+            _pixel_centres(y0, centre_y)
             tile_T[:] = 1.0
             tile_color[:] = 0.0
             tile_last[:] = -1
@@ -220,33 +267,39 @@ def rasterize_forward(
             for j in range(tile_offsets[t], tile_offsets[t + 1]):
                 if remaining == 0:
                     break
-                g = tile_gaussians[j]
-                mx, my = means2d[g, 0], means2d[g, 1]
-                a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
-                opacity = opacities[g]
-                span = spans[g]
+                row = packed[j]
+                mx, my = row[P_MEAN_X], row[P_MEAN_Y]
+                a, b, c = row[P_CONIC_A], row[P_CONIC_B], row[P_CONIC_C]
+                opacity = row[P_OPACITY]
+                span = row[P_SPAN : P_SPAN + 4]
+                f0, f1, f2 = (row[P_FEATURES], row[P_FEATURES + 1], row[P_FEATURES + 2]) if rgb else (zero, zero, zero)
                 row_first, row_last = _row_range(my, span, y0, y1)
-                weight_sum = 0.0
+                weight_sum = zero
                 for y in range(row_first, row_last + 1):
-                    dy = my - (y + 0.5)
+                    dy = my - centre_y[y - y0]
                     lo, hi = _row_span(mx, dy, b, span, x0, x1)
                     for x in range(lo, hi + 1):
                         p = (y - y0) * tile_size + (x - x0)
                         if tile_done[p]:
                             continue
-                        dx = mx - (x + 0.5)
-                        sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
-                        alpha = min(ALPHA_MAX, opacity * math.exp(-sigma))
-                        if sigma < 0.0 or alpha < ALPHA_MIN:
+                        dx = mx - centre_x[x - x0]
+                        sigma = half * (a * dx * dx + c * dy * dy) + b * dx * dy
+                        alpha = min(alpha_max, opacity * math.exp(-sigma))
+                        if sigma < zero or alpha < alpha_min:
                             continue
-                        next_T = tile_T[p] * (1.0 - alpha)
-                        if next_T <= TRANSMITTANCE_MIN:
+                        next_T = tile_T[p] * (one - alpha)
+                        if next_T <= transmittance_min:
                             tile_done[p] = True
                             remaining -= 1
                             continue
                         weight = alpha * tile_T[p]
-                        for ch in range(channels):
-                            tile_color[p, ch] += weight * features[g, ch]
+                        if rgb:
+                            tile_color[p, 0] += weight * f0
+                            tile_color[p, 1] += weight * f1
+                            tile_color[p, 2] += weight * f2
+                        else:
+                            for ch in range(channels):
+                                tile_color[p, ch] += weight * row[P_FEATURES + ch]
                         weight_sum += weight
                         tile_T[p] = next_T
                         tile_last[p] = j
@@ -276,8 +329,8 @@ def _any_gradient(grad_image, grad_alpha, x0, x1, y0, y1):
 
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
 def rasterize_backward(
-    means2d, conics, opacities, features, background, spans, tile_offsets, tile_gaussians, schedule,
-    width, height, tile_size, n_threads, transmittance, last, grad_image, grad_alpha,
+    packed, background, tile_offsets, schedule, width, height, tile_size, n_threads, transmittance, last,
+    grad_image, grad_alpha,
 ):  # fmt: skip
     """Gradients of a loss through `rasterize_forward`, back to front, per intersection.
 
@@ -285,17 +338,22 @@ def rasterize_backward(
     Returns records (n_intersections, 6 + C) with columns G_MEAN_X, G_MEAN_Y, G_CONIC_A..C,
     G_OPACITY, then the C feature gradients.
     """
-    dtype = means2d.dtype
-    channels = features.shape[1]
+    dtype = packed.dtype
+    half, one, alpha_max, alpha_min, _, zero = _compositing_constants(packed)
+    channels = packed.shape[1] - P_FEATURES
+    rgb = channels == 3  # unrolled, as in the forward kernel
     tiles_x = (width + tile_size - 1) // tile_size
-    records = np.zeros((tile_gaussians.shape[0], G_FEATURES + channels), dtype=dtype)
+    records = np.zeros((packed.shape[0], G_FEATURES + channels), dtype=dtype)
     for thread in prange(n_threads):
         pixels = tile_size * tile_size
         tile_T = np.empty(pixels, dtype=dtype)
-        tile_final_T = np.empty(pixels, dtype=dtype)
         tile_behind = np.empty((pixels, channels), dtype=dtype)
         tile_last = np.empty(pixels, dtype=np.int32)
+        tile_grad = np.empty((pixels, channels), dtype=dtype)  # the tile's dL/d(image)
+        tile_grad_alpha = np.empty(pixels, dtype=dtype)  # dL/d(alpha) times the final transmittance
         grad_color = np.empty(channels, dtype=dtype)
+        centre_x = np.empty(tile_size, dtype=dtype)
+        centre_y = np.empty(tile_size, dtype=dtype)
         for k in range(thread, schedule.shape[0], n_threads):
             t = schedule[k]
             if tile_offsets[t] == tile_offsets[t + 1]:
@@ -306,73 +364,98 @@ def rasterize_backward(
             y1 = min(y0 + tile_size, height) - 1
             if not _any_gradient(grad_image, grad_alpha, x0, x1, y0, y1):
                 continue  # a masked loss: nothing flows back through this tile, its records stay zero
+            _pixel_centres(x0, centre_x)
+            _pixel_centres(y0, centre_y)
             tile_last[:] = -1
             max_last = -1
             for y in range(y0, y1 + 1):
                 for x in range(x0, x1 + 1):
                     p = (y - y0) * tile_size + (x - x0)
                     tile_T[p] = transmittance[y, x]
-                    tile_final_T[p] = transmittance[y, x]
+                    tile_grad_alpha[p] = grad_alpha[y, x] * transmittance[y, x]
+                    for ch in range(channels):
+                        tile_grad[p, ch] = grad_image[y, x, ch]
                     tile_last[p] = last[y, x]
                     max_last = max(max_last, last[y, x])
                     for ch in range(channels):
                         tile_behind[p, ch] = transmittance[y, x] * background[ch]
             for j in range(max_last, tile_offsets[t] - 1, -1):
-                g = tile_gaussians[j]
-                mx, my = means2d[g, 0], means2d[g, 1]
-                a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
-                opacity = opacities[g]
-                span = spans[g]
+                row = packed[j]
+                mx, my = row[P_MEAN_X], row[P_MEAN_Y]
+                a, b, c = row[P_CONIC_A], row[P_CONIC_B], row[P_CONIC_C]
+                opacity = row[P_OPACITY]
+                span = row[P_SPAN : P_SPAN + 4]
                 row_first, row_last = _row_range(my, span, y0, y1)
-                g_mx = 0.0
-                g_my = 0.0
-                g_a = 0.0
-                g_b = 0.0
-                g_c = 0.0
-                g_opacity = 0.0
+                f0, f1, f2 = (row[P_FEATURES], row[P_FEATURES + 1], row[P_FEATURES + 2]) if rgb else (zero, zero, zero)
+                g_mx = zero
+                g_my = zero
+                g_a = zero
+                g_b = zero
+                g_c = zero
+                g_opacity = zero
+                g_f0 = zero
+                g_f1 = zero
+                g_f2 = zero
                 grad_color[:] = 0.0
                 for y in range(row_first, row_last + 1):
-                    dy = my - (y + 0.5)
+                    dy = my - centre_y[y - y0]
                     lo, hi = _row_span(mx, dy, b, span, x0, x1)
                     for x in range(lo, hi + 1):
                         p = (y - y0) * tile_size + (x - x0)
                         if j > tile_last[p]:
                             continue
-                        dx = mx - (x + 0.5)
-                        sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+                        dx = mx - centre_x[x - x0]
+                        sigma = half * (a * dx * dx + c * dy * dy) + b * dx * dy
                         gaussian = math.exp(-sigma)
                         alpha_raw = opacity * gaussian
-                        alpha = min(ALPHA_MAX, alpha_raw)
-                        if sigma < 0.0 or alpha < ALPHA_MIN:
+                        alpha = min(alpha_max, alpha_raw)
+                        if sigma < zero or alpha < alpha_min:
                             continue
-                        one_minus_alpha = 1.0 - alpha
-                        T = tile_T[p] / one_minus_alpha
+                        inv_one_minus_alpha = one / (one - alpha)
+                        T = tile_T[p] * inv_one_minus_alpha
                         weight = alpha * T
-                        grad_alpha_here = grad_alpha[y, x] * tile_final_T[p] / one_minus_alpha
-                        for ch in range(channels):
-                            upstream = grad_image[y, x, ch]
-                            grad_color[ch] += weight * upstream
-                            grad_alpha_here += upstream * (
-                                features[g, ch] * T - tile_behind[p, ch] / one_minus_alpha
+                        grad_alpha_here = tile_grad_alpha[p] * inv_one_minus_alpha
+                        if rgb:
+                            u0, u1, u2 = tile_grad[p, 0], tile_grad[p, 1], tile_grad[p, 2]
+                            g_f0 += weight * u0
+                            g_f1 += weight * u1
+                            g_f2 += weight * u2
+                            grad_alpha_here += (
+                                u0 * (f0 * T - tile_behind[p, 0] * inv_one_minus_alpha)
+                                + u1 * (f1 * T - tile_behind[p, 1] * inv_one_minus_alpha)
+                                + u2 * (f2 * T - tile_behind[p, 2] * inv_one_minus_alpha)
                             )
-                            tile_behind[p, ch] += weight * features[g, ch]
+                            tile_behind[p, 0] += weight * f0
+                            tile_behind[p, 1] += weight * f1
+                            tile_behind[p, 2] += weight * f2
+                        else:
+                            for ch in range(channels):
+                                upstream = tile_grad[p, ch]
+                                grad_color[ch] += weight * upstream
+                                grad_alpha_here += upstream * (
+                                    row[P_FEATURES + ch] * T - tile_behind[p, ch] * inv_one_minus_alpha
+                                )
+                                tile_behind[p, ch] += weight * row[P_FEATURES + ch]
                         tile_T[p] = T
-                        if alpha_raw <= ALPHA_MAX:
+                        if alpha_raw <= alpha_max:
                             g_opacity += grad_alpha_here * gaussian
                             grad_sigma = -grad_alpha_here * alpha
                             g_mx += grad_sigma * (a * dx + b * dy)
                             g_my += grad_sigma * (b * dx + c * dy)
-                            g_a += 0.5 * grad_sigma * dx * dx
+                            g_a += half * grad_sigma * dx * dx
                             g_b += grad_sigma * dx * dy
-                            g_c += 0.5 * grad_sigma * dy * dy
+                            g_c += half * grad_sigma * dy * dy
                 records[j, G_MEAN_X] = g_mx
                 records[j, G_MEAN_Y] = g_my
                 records[j, G_CONIC_A] = g_a
                 records[j, G_CONIC_B] = g_b
                 records[j, G_CONIC_C] = g_c
                 records[j, G_OPACITY] = g_opacity
-                for ch in range(channels):
-                    records[j, G_FEATURES + ch] = grad_color[ch]
+                if rgb:
+                    records[j, G_FEATURES], records[j, G_FEATURES + 1], records[j, G_FEATURES + 2] = g_f0, g_f1, g_f2
+                else:
+                    for ch in range(channels):
+                        records[j, G_FEATURES + ch] = grad_color[ch]
     return records
 
 

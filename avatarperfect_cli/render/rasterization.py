@@ -6,7 +6,7 @@ from collections.abc import Callable
 
 import torch
 
-from avatarperfect_cli.gaussians.sh import eval_sh
+from avatarperfect_cli.gaussians.sh_kernels import eval_sh_cpu
 from avatarperfect_cli.render.camera import Camera
 from avatarperfect_cli.render.cpu import rasterize_to_pixels
 from avatarperfect_cli.render.projection import project_gaussians
@@ -93,7 +93,7 @@ def rasterization(
     camera = camera.to(dtype=means.dtype)
     projection = project_gaussians(means, quats, scales, opacities, camera, near_plane, far_plane, eps2d)
     if sh_degree is not None:
-        features = eval_sh(colors, means - camera.center, sh_degree)
+        features = eval_sh_cpu(colors, means - camera.center, sh_degree)
     else:
         features = colors
     channels = features.shape[1]

@@ -25,6 +25,7 @@ from avatarperfect_cli.refinement.suggest import (
     suggest_view,
 )
 from avatarperfect_cli.refinement.visibility import gaussian_visibility, suggestion_weights
+from avatarperfect_cli.render import rasterization
 from avatarperfect_cli.sample.generate import fit_camera
 from avatarperfect_cli.sample.motions import turntable
 
@@ -146,8 +147,7 @@ def test_orbit_pose_file_camera_renders_the_same_image(small_avatar: Avatar, azi
 
 
 def test_frame_gives_the_pose_file_render_gives_without_rasterizing(small_avatar: Avatar, monkeypatch: pytest.MonkeyPatch) -> None:
-    """`animation_exposure` needs only the views' pose files: `frame` must give exactly `render`'s, and
-    must not rasterize."""
+    """`frame` must give exactly `render`'s pose file, and must not rasterize."""
     reference = reference_view(small_avatar, 48)
     view = OrbitView(small_avatar, load_pose_prior("builtin", REFERENCE_POSE), reference, fill=0.9)
     latent = 0.7 * torch.randn(32, generator=torch.Generator().manual_seed(3))
@@ -161,6 +161,21 @@ def test_frame_gives_the_pose_file_render_gives_without_rasterizing(small_avatar
     assert torch.equal(framed.camera.world_to_camera, rendered.camera.world_to_camera)
     assert torch.equal(framed.camera.K, rendered.camera.K)
 
+
+
+def test_framed_gaussians_are_seen_as_the_pose_file_shows_them(small_avatar: Avatar) -> None:
+    """`animation_exposure` rasterizes the framed Gaussians with the framing camera rather than skinning
+    the avatar again for the pose file: the two must see every Gaussian alike."""
+    reference = reference_view(small_avatar, 48)
+    view = OrbitView(small_avatar, load_pose_prior("builtin", REFERENCE_POSE), reference, fill=0.9)
+    latent = 0.7 * torch.randn(32, generator=torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        framed = view.frame(latent, torch.tensor(1.2), torch.tensor(0.0), reference.camera)
+        no_colors = framed.means.new_zeros(len(small_avatar), 1)
+        seen = rasterization(framed.means, framed.quats, small_avatar.scales, small_avatar.opacities, no_colors, framed.camera)
+    expected = gaussian_visibility(small_avatar, framed.pose)
+    assert float(expected.sum()) > 100.0
+    torch.testing.assert_close(seen.visibility.double(), expected, rtol=1e-3, atol=1e-3 * float(expected.max()))
 
 # ---------------------------------------------------------------- gradients
 
