@@ -41,6 +41,7 @@ demo: install
 
 bench: install
 	$(BIN)/python benchmarks/rasterizer.py
+	$(BIN)/python benchmarks/sh.py
 
 # The full reliability run: the damaged-input corpus, and KILLS random kills (SIGINT, SIGTERM, SIGKILL) of every
 # workspace-writing stage (tests/reliability); the counts go to out/reliability-kills.json and docs/reliability.md.
