@@ -32,7 +32,6 @@ from typing import NamedTuple
 import torch
 
 from avatarperfect_cli.avatar.model import Avatar
-from avatarperfect_cli.body import forward_kinematics
 from avatarperfect_cli.io.pose_json import PoseFile
 from avatarperfect_cli.refinement.collision import BodyCapsules
 from avatarperfect_cli.refinement.pose_prior import PosePrior
@@ -142,13 +141,13 @@ class OrbitView:
         the view's pose file. Differentiable w.r.t. latent and the angles. `camera` gives the intrinsics and size."""
         body_pose = self.body_pose(latent)
         transl = self.reference.transl
-        posed_pose, posed_transl = body_pose.to(self.device), transl.to(self.device)
-        center = self._body_center(posed_pose.detach(), posed_transl)
+        transforms = self.avatar.joint_transforms(body_pose, transl)
+        center = self._body_center(transforms.detach())
         orbit = self.orbit(azimuth, elevation)
         world = torch.eye(4, device=self.device)
         world[:3, :3] = orbit.T  # turning the body by orbit^T = turning the camera by orbit
         world[:3, 3] = center - orbit.T @ center
-        means, quats = self.avatar.pose(posed_pose, posed_transl, world)
+        means, quats = self.avatar.skin(world @ transforms)
         distance = framing_distance(
             means - center, self.base_rotation, camera.K, camera.width, camera.height, self.fill, self.max_magnification
         )
@@ -174,9 +173,8 @@ class OrbitView:
         out = rasterization(framed.means, framed.quats, self.avatar.scales, self.avatar.opacities, colors, framed.camera)
         return out.image, framed.pose
 
-    def _body_center(self, body_pose: torch.Tensor, transl: torch.Tensor) -> torch.Tensor:
-        """(3,) centre of the posed joints' bounding box, metres."""
-        transforms = forward_kinematics(body_pose[None], self.avatar.rest_joints, transl[None])[0]
+    def _body_center(self, transforms: torch.Tensor) -> torch.Tensor:
+        """(3,) centre of the bounding box of the joints posed by `transforms` (24, 4, 4), metres."""
         joints = (transforms[:, :3, :3] @ self.avatar.rest_joints[:, :, None])[..., 0] + transforms[:, :3, 3]
         return 0.5 * (joints.min(dim=0).values + joints.max(dim=0).values)
 
@@ -309,6 +307,7 @@ def _optimise(view, capsules, objective, separated, latent, azimuth, elevation, 
     if config.body_pose == "optimise":
         groups.append({"params": [latent], "lr": config.latent_learning_rate})
     optimizer = Adam(groups, eps=SUGGEST_ADAM_EPS)
+    variables = [variable for group in groups for variable in group["params"]]
     best = None
     for _ in range(config.steps):
         value, pose = objective(latent, angles[0], angles[1], camera)
@@ -316,9 +315,10 @@ def _optimise(view, capsules, objective, separated, latent, azimuth, elevation, 
         current = float(value.detach())
         if float(penalty.detach()) == 0.0 and (best is None or current < best[0]) and separated(pose):
             best = (current, latent.detach().clone(), float(angles[0].detach()), float(angles[1].detach()))
-        optimizer.zero_grad(set_to_none=True)
         loss = value / camera.width / camera.height + config.collision_weight * penalty.to(value.device)
-        loss.backward()
+        # the search's own variables only: a plain backward would also fill every avatar parameter's gradient
+        for variable, gradient in zip(variables, torch.autograd.grad(loss, variables)):
+            variable.grad = gradient
         optimizer.step()
         with torch.no_grad():
             angles[1].clamp_(-max_elevation, max_elevation)

@@ -88,9 +88,9 @@ def frozen_framing(monkeypatch: pytest.MonkeyPatch, view: OrbitView, latent: tor
     monkeypatch.setattr(suggest, "framing_distance", recording)
     with torch.no_grad():
         view.render(latent, *angles, view.reference.camera, torch.zeros(len(view.avatar), 1))
-        centre = view._body_center(view.body_pose(latent), view.reference.transl)
+        centre = view._body_center(view.avatar.joint_transforms(view.body_pose(latent), view.reference.transl))
     monkeypatch.setattr(suggest, "framing_distance", lambda *args: distances[0])
-    monkeypatch.setattr(OrbitView, "_body_center", lambda self, body_pose, transl: centre)
+    monkeypatch.setattr(OrbitView, "_body_center", lambda self, transforms: centre)
 
 
 # ---------------------------------------------------------------- orbit geometry
