@@ -140,7 +140,7 @@ class _EvalSH(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx: Any, grad_colors: torch.Tensor) -> tuple[torch.Tensor | None, ...]:  # type: ignore[override]
-        grad_sh, grad_dirs = sh_backward(*ctx.saved, np.ascontiguousarray(grad_colors.numpy()))
+        grad_sh, grad_dirs = sh_backward(*ctx.saved, np.ascontiguousarray(grad_colors.detach().numpy()))
         return torch.from_numpy(grad_sh), torch.from_numpy(grad_dirs), None
 
 
