@@ -4,7 +4,9 @@ First the background tool takes effect: the Gaussians whose projected centres fa
 background region, in that edit's pose, are deleted (once per edit: the edits an avatar iteration has
 applied are recorded in its history entry). Then training continues on the video frames and the
 edits (an edit drawn with probability `edit_probability`, its loss masked by M_k; background pixels
-of an edit supervise towards the step's random background colour, so Gaussians there must vanish).
+of an edit supervise towards the step's random background colour, so Gaussians there must vanish; an
+edit step's loss weighs `EDIT_LOSS_WEIGHT` of a video step's, so an edit repairs what the video never
+showed without undoing what it did).
 Floaters at the armpits and crotch come from wrong skinning, so before training every Gaussian's skinning
 weights move toward the body template's at its canonical position, as far as moves it at most
 `template_shift` in any training frame (`template_skinning` caps the share; body/template_skinning.py),
@@ -37,6 +39,18 @@ from avatarperfect_cli.stages.workspace_data import RegisteredEdit, applied_edit
 from avatarperfect_cli.training.trainer import TrainConfig, train, video_views
 
 
+# An edit step's loss against a video step's (the paper: 1). One edit drawn in 150 of 500 steps outweighs
+# the ~20 video frames that show the same surface, and wherever the avatar's shape differs a little from
+# the truth the two disagree: `tall` seed 1's first edit (the back from above) blurred the stripes of every
+# back view, -0.52 dB on the training frames. Adam scales each parameter's steps by its own gradients, so
+# what only the edits supervise learns as fast at any weight; what the video also supervises follows the
+# edit less. That round replayed (training frames / held out / hidden regions, dB): weight 1: -0.52 /
+# +0.63 / +0.42; 0.5: -0.39 / +0.69 / +0.50; 0.25: -0.28 / +0.73 / +0.54; 0.1: -0.19 / +0.76 / +0.53; no
+# edit: -0.12 / +0.77 / +0.37. Nine five-round study runs at 0.25 against 1: held out +0.10 dB (all nine
+# up), worst training round +0.20 dB (all nine up; none past -0.3 dB), hidden regions -0.16 dB (docs/study.md).
+EDIT_LOSS_WEIGHT = 0.25
+
+
 @dataclass
 class RefineSettings:
     """iterations: training steps (the paper: 500); edit_probability: share of steps that draw an edit (0.3);
@@ -46,6 +60,7 @@ class RefineSettings:
     (None: every edit equally, as the paper; see `edit_draw_weights`);
     keep_shapes: edit steps leave the Gaussians' scales and rotations alone (`SHAPE_PARAMETERS`): the
     training frames keep their look, at some cost to what the edits repair (docs/refine.md);
+    edit_loss_weight: an edit step's loss against a video step's (1: the paper; see `EDIT_LOSS_WEIGHT`);
     template_skinning: the largest share of the way each Gaussian's skinning weights move to the body
     template's at its canonical position before training (1: the template's, 0: the learned ones kept);
     template_shift: metres; the move is cut short where it would shift the Gaussian further than this in
@@ -58,6 +73,7 @@ class RefineSettings:
     protect_seen: bool = True  # background strokes keep the Gaussians the video saw at least averagely
     new_edit_share: float | None = 0.5
     keep_shapes: bool = False
+    edit_loss_weight: float = EDIT_LOSS_WEIGHT
     template_skinning: float = 1.0
     template_shift: float = 0.003
     smpl_model_dir: Path | None = None
@@ -137,7 +153,10 @@ def refine_config(settings: RefineSettings) -> TrainConfig:
     step 0, and no densification: splitting and pruning at steps 101 and 302 of a 500-step run leave
     too few steps to settle (measured on the 256² sample, 500 video-only steps: -0.33 dB on the
     training frames with densification, +0.21 dB without)."""
-    config = TrainConfig(iterations=settings.iterations, seed=settings.seed, edit_probability=settings.edit_probability)
+    config = TrainConfig(
+        iterations=settings.iterations, seed=settings.seed, edit_probability=settings.edit_probability,
+        edit_loss_weight=settings.edit_loss_weight,
+    )  # fmt: skip
     config.learning_rates.total_steps = settings.iterations
     config.learning_rates.means = REFINE_MEANS_RATE
     config.learning_rates.quats *= REFINE_SHAPE_RATE_FACTOR
@@ -156,6 +175,8 @@ def refine(workspace_root: Path, settings: RefineSettings | None = None, progres
         raise AvatarPerfectError(f"--iterations must be at least 1, got {settings.iterations}")
     if not 0.0 <= settings.edit_probability <= 1.0:
         raise AvatarPerfectError(f"--edit-probability must be in [0, 1], got {settings.edit_probability}")
+    if not settings.edit_loss_weight > 0.0:
+        raise AvatarPerfectError(f"--edit-loss-weight must be positive, got {settings.edit_loss_weight:g}")
     if settings.new_edit_share is not None and not 0.0 < settings.new_edit_share <= 1.0:
         raise AvatarPerfectError(f"--new-edit-share must be in (0, 1], got {settings.new_edit_share}")
     if not 0.0 <= settings.template_skinning <= 1.0:
@@ -199,6 +220,7 @@ def refine(workspace_root: Path, settings: RefineSettings | None = None, progres
                 "edit_probability": settings.edit_probability,
                 "new_edit_share": settings.new_edit_share,
                 "keep_shapes": settings.keep_shapes,
+                "edit_loss_weight": settings.edit_loss_weight,
                 "template_skinning": settings.template_skinning,
                 "template_shift_mm": settings.template_shift * 1e3,
                 "seed": settings.seed,

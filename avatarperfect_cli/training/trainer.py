@@ -3,8 +3,8 @@
 Each step draws a view (an edit with probability `edit_probability`, else a video frame), poses the
 avatar, renders it over a random background colour, and takes an Adam step on L1 + λ(1 − SSIM) over
 the subject's bounding box (edits: masked by the edit mask M_k, paper §6.3, plus the alpha of their
-background pixels). Densification lives in the strategy object's hooks, so the loop holds no
-bookkeeping of its own.
+background pixels; the whole edit loss weighed by `edit_loss_weight`). Densification lives in the
+strategy object's hooks, so the loop holds no bookkeeping of its own.
 
 Training runs on the avatar's device (`Avatar.to`): the views are moved there once, the background
 colours are drawn by the CPU generator (the same colours on every device) and moved there.
@@ -74,6 +74,10 @@ class TrainConfig:
     # sample's background edit (refine at full shape rates) the stroke's largest alpha after refine was
     # 0.057 without it, 0.046 with 4.
     background_alpha_weight: float = 4.0
+    # factor on an edit step's whole loss (1: the paper). Adam scales each parameter's steps by the size of
+    # its own gradients, so a Gaussian only the edits supervise learns them as fast at any factor, while one
+    # the video supervises too follows the edits that much less.
+    edit_loss_weight: float = 1.0
     learning_rates: LearningRates = field(default_factory=LearningRates)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
 
@@ -161,8 +165,10 @@ def train(
             out = render_avatar(avatar, body_pose, transl, view.camera, background, region=(rows, cols), transforms=transforms)
             mask = None if view.loss_mask is None else view.loss_mask[rows, cols]
             loss = image_loss(out.image[rows, cols], target, mask, config.ssim_weight)
-            if mask is not None and config.background_alpha_weight:
-                loss = loss + config.background_alpha_weight * background_alpha(out.alpha[rows, cols], mask, view.foreground[rows, cols])
+            if mask is not None:
+                if config.background_alpha_weight:
+                    loss = loss + config.background_alpha_weight * background_alpha(out.alpha[rows, cols], mask, view.foreground[rows, cols])
+                loss = config.edit_loss_weight * loss
 
             strategy.step_pre_backward(avatar.params, optimizers, state, step, out)
             loss.backward()

@@ -338,7 +338,9 @@ def test_new_edits_share_the_given_part_of_the_edit_draws():
 def test_refine_config_continues_the_fit_gently():
     """Positions from REFINE_MEANS_RATE, scales and rotations at REFINE_SHAPE_RATE_FACTOR of GART's rates,
     skinning from step 0, no densification; colours and opacities at GART's rates."""
-    from avatarperfect_cli.stages.refine import REFINE_MEANS_RATE, REFINE_SHAPE_RATE_FACTOR, RefineSettings, refine_config
+    from avatarperfect_cli.stages.refine import (
+        EDIT_LOSS_WEIGHT, REFINE_MEANS_RATE, REFINE_SHAPE_RATE_FACTOR, RefineSettings, refine_config,
+    )  # fmt: skip
     from avatarperfect_cli.training.trainer import TrainConfig
 
     gart, config = TrainConfig().learning_rates, refine_config(RefineSettings(iterations=300))
@@ -351,11 +353,12 @@ def test_refine_config_continues_the_fit_gently():
     assert rates.at("means", 0) == pytest.approx(REFINE_MEANS_RATE) and rates.at("means", 300) == pytest.approx(gart.means_final)
     assert rates.at("skin_logits", 0) == pytest.approx(gart.skin_logits) and gart.skin_logits > 0.0
     assert config.iterations == 300 and config.densify.refine_stop == 0
+    assert config.edit_loss_weight == EDIT_LOSS_WEIGHT and 0.0 < EDIT_LOSS_WEIGHT < 1.0
 
 
 @pytest.mark.parametrize(
     "option", [["--new-edit-share", "0"], ["--new-edit-share", "1.5"], ["--edit-probability", "-0.1"], ["--template-skinning", "1.5"],
-               ["--template-shift-mm", "0"]]  # fmt: skip
+               ["--template-shift-mm", "0"], ["--edit-loss-weight", "0"]]  # fmt: skip
 )
 def test_refine_refuses_bad_shares_in_one_line(workspace: Path, option: list):
     before = snapshot(workspace)

@@ -191,3 +191,41 @@ def test_background_alpha_weight_clears_a_background_edit_faster():
             alpha = render_avatar(avatar, yaw(0.0), torch.zeros(3), camera(), torch.ones(3)).alpha
         remaining.append(float(alpha[left & video[0].foreground].mean()))
     assert remaining[1] < 0.9 * remaining[0], remaining
+
+
+
+
+def test_edit_loss_weight_leaves_what_only_the_edits_supervise_as_fast():
+    """Adam divides each step by the gradients' own size: on edit steps alone the weight changes nothing,
+    but for the few entries whose gradients are as small as its eps (1e-15)."""
+    results = []
+    for weight in (1.0, 0.25):
+        avatar = coloured_avatar()
+        video = video_of(avatar)
+        config = TrainConfig(iterations=15, edit_probability=1.0, edit_loss_weight=weight)
+        train(avatar, video, [left_half_edit(video, [1.0, 0.0, 0.0])], config=config, progress=False)
+        results.append(avatar)
+    for name, value in results[0].params.items():
+        differs = ~torch.isclose(results[1].params[name], value, rtol=1e-4, atol=1e-6)
+        assert differs.double().mean() < 0.01, (name, int(differs.sum()))
+    assert not torch.equal(results[0].params["sh_dc"], coloured_avatar().params["sh_dc"]), "the edit steps should move the avatar"
+
+
+def test_edit_loss_weight_lets_the_video_outweigh_an_edit_it_contradicts():
+    """The video shows the sphere's own colours; an edit paints half of one view red. Mixed steps: with the
+    edit's loss at a quarter, the video's frames stay closer to the video and the half less red."""
+    video = video_of(coloured_avatar())
+    edit = left_half_edit(video, [1.0, 0.0, 0.0])
+    inside = video[0].foreground & edit.loss_mask
+    fits, reds = [], []
+    for weight in (1.0, 0.25):
+        avatar = coloured_avatar()
+        config = TrainConfig(iterations=80, edit_probability=0.5, edit_loss_weight=weight)
+        config.learning_rates.sh_dc = 0.05
+        train(avatar, video, [edit], config=config, progress=False)
+        fits.append(mean_psnr(avatar, video))
+        with torch.no_grad():
+            image = render_avatar(avatar, yaw(0.0), torch.zeros(3), camera(), torch.ones(3)).image
+        reds.append(float(image[inside][:, 0].mean() - image[inside][:, 1:].mean()))
+    assert fits[1] > fits[0] + 1.0, fits
+    assert reds[1] < reds[0], reds
