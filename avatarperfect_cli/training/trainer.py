@@ -165,13 +165,11 @@ def train(
             out = render_avatar(avatar, body_pose, transl, view.camera, background, region=(rows, cols), transforms=transforms)
             mask = None if view.loss_mask is None else view.loss_mask[rows, cols]
             loss = image_loss(out.image[rows, cols], target, mask, config.ssim_weight)
-            if mask is not None:
-                if config.background_alpha_weight:
-                    loss = loss + config.background_alpha_weight * background_alpha(out.alpha[rows, cols], mask, view.foreground[rows, cols])
-                loss = config.edit_loss_weight * loss
+            if mask is not None and config.background_alpha_weight:
+                loss = loss + config.background_alpha_weight * background_alpha(out.alpha[rows, cols], mask, view.foreground[rows, cols])
 
             strategy.step_pre_backward(avatar.params, optimizers, state, step, out)
-            loss.backward()
+            (loss if mask is None else config.edit_loss_weight * loss).backward()  # the bar shows the unweighted loss
             for name, optimizer in optimizers.items():
                 if name not in frozen:
                     optimizer.step()
