@@ -337,6 +337,9 @@ def refine(
     edit_loss_weight: float = typer.Option(
         0.25, help="An edit step's loss against a video step's (the paper: 1): edits move less what the video shows well."
     ),
+    slow_barely_seen: bool = typer.Option(
+        False, "--slow-barely-seen", help="Gaussians the video barely saw move and reshape as slowly as the rest (by default as in the first fit)."
+    ),
     seed: int = typer.Option(0, help="Random seed."),
     revert_to: Optional[int] = typer.Option(None, "--revert-to", help="Make avatar iteration K current again (keeps the others)."),
     delete_seen: bool = typer.Option(
@@ -362,7 +365,7 @@ def refine(
         share = None if uniform_edits else new_edit_share
         settings = stage.RefineSettings(
             iterations, edit_probability, seed, protect_seen=not delete_seen, new_edit_share=share, keep_shapes=keep_shapes,
-            edit_loss_weight=edit_loss_weight,
+            edit_loss_weight=edit_loss_weight, barely_seen_rates=not slow_barely_seen,
             template_skinning=template_skinning, template_shift=template_shift_mm / 1e3, smpl_model_dir=smpl_model_dir,
             device=torch_device,
         )  # fmt: skip

@@ -61,6 +61,8 @@ class RefineSettings:
     keep_shapes: edit steps leave the Gaussians' scales and rotations alone (`SHAPE_PARAMETERS`): the
     training frames keep their look, at some cost to what the edits repair (docs/refine.md);
     edit_loss_weight: an edit step's loss against a video step's (1: the paper; see `EDIT_LOSS_WEIGHT`);
+    barely_seen_rates: when there are edits, the Gaussians the video saw less than average learn positions
+    and shapes at GART's rates, the others at refine's (`barely_seen_rate_scales`);
     template_skinning: the largest share of the way each Gaussian's skinning weights move to the body
     template's at its canonical position before training (1: the template's, 0: the learned ones kept);
     template_shift: metres; the move is cut short where it would shift the Gaussian further than this in
@@ -74,6 +76,7 @@ class RefineSettings:
     new_edit_share: float | None = 0.5
     keep_shapes: bool = False
     edit_loss_weight: float = EDIT_LOSS_WEIGHT
+    barely_seen_rates: bool = True
     template_skinning: float = 1.0
     template_shift: float = 0.003
     smpl_model_dir: Path | None = None
@@ -82,15 +85,15 @@ class RefineSettings:
 
 def delete_background(
     avatar: Avatar, edits: list[RegisteredEdit], protected: torch.Tensor | None = None
-) -> tuple[Avatar, int]:
+) -> tuple[Avatar, torch.Tensor]:
     """Delete the Gaussians whose centres fall in any of the edits' background regions, except the
-    `protected` ones ((N,) bool, or None); returns (avatar, count)."""
+    `protected` ones ((N,) bool, or None); returns (avatar, the deleted ones as (N,) bool)."""
     delete = torch.zeros(len(avatar), dtype=torch.bool, device=avatar.device)
     for edit in edits:
         delete |= centres_in_region(avatar, edit.pose, edit.background())
     if protected is not None:
         delete &= ~protected.to(avatar.device)
-    return delete_gaussians(avatar, delete), int(delete.sum())
+    return delete_gaussians(avatar, delete), delete
 
 
 def seen_by_the_video(workspace: Workspace, avatar: Avatar, progress: bool) -> torch.Tensor:
@@ -145,6 +148,22 @@ REFINE_MEANS_RATE = 1.6e-5
 # 556 and -0.08 dB; at 3%: 486 and -0.02 dB. Five study rounds (ap-exact), held-out PSNR change on `tall`:
 # -0.41 dB at 100%, +0.25 at 10%, +0.51 at 3%, +0.36 at 1% (`default`: +0.57 at 10%, +0.84 at 3%).
 REFINE_SHAPE_RATE_FACTOR = 0.03
+# Barely seen Gaussians learn positions at GART's rate (`barely_seen_rate_scales`): 1.6e-4 = 10 x REFINE_MEANS_RATE.
+BARELY_SEEN_MEANS_FACTOR = 10.0
+
+
+def barely_seen_rate_scales(seen: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Per-Gaussian factors on refine's position and shape rates (`train`'s rate_scales) that give the
+    Gaussians the video saw less than average (`seen` (N,) bool False, see `seen_by_the_video`) GART's
+    rates, and leave the others at refine's.
+
+    Refine moves shapes and positions slowly so that the video's Gaussians keep fitting the training
+    poses (`REFINE_SHAPE_RATE_FACTOR`). The barely seen ones have nothing there to keep, and only the
+    edits tell them anything: at refine's rates they keep the initial fit's shapes, which can hold no
+    more detail than the template's vertex spacing (the armpit's checker, docs/study.md)."""
+    barely = (~seen).float()
+    factors = {"means": BARELY_SEEN_MEANS_FACTOR, "quats": 1.0 / REFINE_SHAPE_RATE_FACTOR, "log_scales": 1.0 / REFINE_SHAPE_RATE_FACTOR}
+    return {name: 1.0 + (factor - 1.0) * barely for name, factor in factors.items()}
 
 
 def refine_config(settings: RefineSettings) -> TrainConfig:
@@ -190,10 +209,12 @@ def refine(workspace_root: Path, settings: RefineSettings | None = None, progres
         edits = registered_edits(workspace)
         done = set(applied_edits(workspace))
         new_edits = [edit for edit in edits if edit.number not in done]
-        protected = None
-        if settings.protect_seen and any(bool(edit.background().any()) for edit in new_edits):
-            protected = seen_by_the_video(workspace, avatar, progress)
-        avatar, deleted = delete_background(avatar, new_edits, protected)
+        seen = seen_by_the_video(workspace, avatar, progress) if edits else None
+        avatar, deleted = delete_background(avatar, new_edits, seen if settings.protect_seen else None)
+        rate_scales = None
+        if seen is not None and settings.barely_seen_rates:
+            rate_scales = barely_seen_rate_scales(seen[~deleted])
+        deleted = int(deleted.sum())
         video = load_video(workspace)
         if settings.template_skinning > 0.0:
             pull_toward_template_skinning(avatar, video, settings)
@@ -203,7 +224,7 @@ def refine(workspace_root: Path, settings: RefineSettings | None = None, progres
         )
         weights = edit_draw_weights(edits, {edit.number for edit in new_edits}, settings.new_edit_share)
         edit_views = [replace(edit.training_view(), draw_weight=weight) for edit, weight in zip(edits, weights)]
-        train(avatar, video_views(video), edit_views, refine_config(settings), progress=progress)
+        train(avatar, video_views(video), edit_views, refine_config(settings), progress=progress, rate_scales=rate_scales)
         iteration = max(workspace.committed_avatars()) + 1
         path = workspace.avatar_path(iteration)
         avatar.save(path)
@@ -221,6 +242,7 @@ def refine(workspace_root: Path, settings: RefineSettings | None = None, progres
                 "new_edit_share": settings.new_edit_share,
                 "keep_shapes": settings.keep_shapes,
                 "edit_loss_weight": settings.edit_loss_weight,
+                "barely_seen_rates": settings.barely_seen_rates,
                 "template_skinning": settings.template_skinning,
                 "template_shift_mm": settings.template_shift * 1e3,
                 "seed": settings.seed,

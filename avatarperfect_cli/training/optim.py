@@ -25,16 +25,32 @@ ADAM_EPS = 1e-15
 ADAM_BETAS = (0.9, 0.999)
 
 
+@numba.njit(inline="always")
+def _adam_element(param, grad, exp_avg, exp_avg_sq, i, beta1, beta2, step_size, bias_correction2_sqrt, eps) -> None:
+    """Adam's update of element i of flat arrays (torch's formulas and operation order)."""
+    g = grad[i]
+    m = exp_avg[i] + (1.0 - beta1) * (g - exp_avg[i])
+    v = beta2 * exp_avg_sq[i] + (1.0 - beta2) * g * g
+    exp_avg[i] = m
+    exp_avg_sq[i] = v
+    param[i] -= step_size * m / (math.sqrt(v) / bias_correction2_sqrt + eps)
+
+
 @numba.njit(cache=True, parallel=True)
 def _adam_kernel(param, grad, exp_avg, exp_avg_sq, beta1, beta2, step_size, bias_correction2_sqrt, eps) -> None:
-    """One Adam step in place on flat arrays of one dtype (torch's formulas and operation order)."""
+    """One Adam step in place on flat arrays of one dtype."""
     for i in numba.prange(param.shape[0]):
-        g = grad[i]
-        m = exp_avg[i] + (1.0 - beta1) * (g - exp_avg[i])
-        v = beta2 * exp_avg_sq[i] + (1.0 - beta2) * g * g
-        exp_avg[i] = m
-        exp_avg_sq[i] = v
-        param[i] -= step_size * m / (math.sqrt(v) / bias_correction2_sqrt + eps)
+        _adam_element(param, grad, exp_avg, exp_avg_sq, i, beta1, beta2, step_size, bias_correction2_sqrt, eps)
+
+
+@numba.njit(cache=True, parallel=True)
+def _adam_rows_kernel(param, grad, exp_avg, exp_avg_sq, row_scale, beta1, beta2, step_size, bias_correction2_sqrt, eps) -> None:
+    """`_adam_kernel` with row r's step (elements r * row size ... of the flat arrays) scaled by row_scale[r]."""
+    row_size = param.shape[0] // row_scale.shape[0]
+    for r in numba.prange(row_scale.shape[0]):
+        row_step = step_size * row_scale[r]
+        for i in range(r * row_size, (r + 1) * row_size):
+            _adam_element(param, grad, exp_avg, exp_avg_sq, i, beta1, beta2, row_step, bias_correction2_sqrt, eps)
 
 
 def _flat(tensor: torch.Tensor) -> np.ndarray:
@@ -44,6 +60,9 @@ def _flat(tensor: torch.Tensor) -> np.ndarray:
 
 class Adam:
     """Adam over parameter groups: {"params": [tensors], "lr": float, ...any other keys}.
+
+    A group may hold "row_scale": a (rows,) tensor that scales the learning rate of each row (first index)
+    of its parameters, e.g. per Gaussian; densification keeps it in step with the rows (`training.strategy`).
 
     state[param] = {"step": int, "exp_avg": tensor, "exp_avg_sq": tensor}, created at its first step;
     densification may replace parameters in `param_groups` and rows of the moments (`training.strategy`).
@@ -73,14 +92,18 @@ class Adam:
                 step_size = group["lr"] / (1.0 - beta1 ** state["step"])
                 bias_correction2_sqrt = math.sqrt(1.0 - beta2 ** state["step"])
                 moments = state["exp_avg"], state["exp_avg_sq"]
+                row_scale = group.get("row_scale")
+                if row_scale is not None and (param.ndim == 0 or row_scale.shape != param.shape[:1]):
+                    raise ValueError(f"row_scale has shape {tuple(row_scale.shape)}; the parameter has {tuple(param.shape[:1])} rows")
                 if param.device.type == "cpu" and param.is_contiguous() and param.dtype in (torch.float32, torch.float64):
-                    grad = param.grad.to(param.dtype).contiguous()
-                    _adam_kernel(
-                        _flat(param), _flat(grad), *(_flat(m) for m in moments),
-                        beta1, beta2, step_size, bias_correction2_sqrt, self.eps,
-                    )  # fmt: skip
+                    arrays = [_flat(tensor) for tensor in (param, param.grad.to(param.dtype).contiguous(), *moments)]
+                    settings = (beta1, beta2, step_size, bias_correction2_sqrt, self.eps)
+                    if row_scale is None:
+                        _adam_kernel(*arrays, *settings)
+                    else:
+                        _adam_rows_kernel(*arrays, row_scale.to(param.dtype).contiguous().numpy(), *settings)
                 else:
-                    _adam_torch(param, param.grad, *moments, beta1, beta2, step_size, bias_correction2_sqrt, self.eps)
+                    _adam_torch(param, param.grad, *moments, row_scale, beta1, beta2, step_size, bias_correction2_sqrt, self.eps)
 
     def zero_grad(self, set_to_none: bool = True) -> None:
         """Drop (or zero) every parameter's gradient."""
@@ -93,11 +116,12 @@ class Adam:
                         param.grad.zero_()
 
 
-def _adam_torch(param, grad, exp_avg, exp_avg_sq, beta1, beta2, step_size, bias_correction2_sqrt, eps) -> None:
-    """`_adam_kernel` as torch ops, for tensors on any device."""
+def _adam_torch(param, grad, exp_avg, exp_avg_sq, row_scale, beta1, beta2, step_size, bias_correction2_sqrt, eps) -> None:
+    """`_adam_kernel` as torch ops, for tensors on any device (row_scale: (rows,) or None)."""
     exp_avg.lerp_(grad, 1.0 - beta1)
     exp_avg_sq.mul_(beta2).addcmul_(grad, grad, value=1.0 - beta2)
-    param.addcdiv_(exp_avg, (exp_avg_sq.sqrt() / bias_correction2_sqrt).add_(eps), value=-step_size)
+    step = exp_avg if row_scale is None else exp_avg * row_scale.to(param).reshape((-1,) + (1,) * (param.ndim - 1))
+    param.addcdiv_(step, (exp_avg_sq.sqrt() / bias_correction2_sqrt).add_(eps), value=-step_size)
 
 
 def exponential_decay(step: int, start_step: int, stop_step: int, initial: float, final: float) -> float:
@@ -144,9 +168,23 @@ class LearningRates:
         raise ValueError(f"no learning rate for parameter '{name}'")
 
 
-def create_optimizers(params: Mapping[str, torch.nn.Parameter], rates: LearningRates, step: int = 0) -> dict[str, Adam]:
-    """One Adam (a single param group holding a single parameter) per named parameter, at `step`'s rates."""
-    return {name: Adam([{"params": [param], "lr": rates.at(name, step), "name": name}]) for name, param in params.items()}
+def create_optimizers(
+    params: Mapping[str, torch.nn.Parameter], rates: LearningRates, step: int = 0,
+    row_scales: Mapping[str, torch.Tensor] | None = None,
+) -> dict[str, Adam]:
+    """One Adam (a single param group holding a single parameter) per named parameter, at `step`'s rates;
+    row_scales: optional (N,) factors on the rates of named parameters, per row (Gaussian)."""
+    row_scales = row_scales or {}
+    unknown = set(row_scales) - set(params)
+    if unknown:
+        raise ValueError(f"row scales for unknown parameters {sorted(unknown)}")
+    optimizers = {}
+    for name, param in params.items():
+        group = {"params": [param], "lr": rates.at(name, step), "name": name}
+        if name in row_scales:
+            group["row_scale"] = row_scales[name].detach().to(param.device)
+        optimizers[name] = Adam([group])
+    return optimizers
 
 
 def set_learning_rates(optimizers: Mapping[str, Adam], rates: LearningRates, step: int) -> None:

@@ -100,7 +100,8 @@ def replace_rows(
     """Keep the rows `keep` (N,) bool of every parameter and append `new_rows[name]` (M, ...) to it.
 
     Each parameter is replaced by a new `torch.nn.Parameter` in `params` and in its optimizer; the
-    optimizer's per-element state (Adam's moments) keeps the kept rows and is zero for the new ones.
+    optimizer's per-element state (Adam's moments) keeps the kept rows and is zero for the new ones, and
+    a group's per-row rate factors ("row_scale") keep the kept rows and are 1 for the new ones.
     """
     for name, param in list(params.items()):
         appended = new_rows[name].to(param.dtype)
@@ -108,6 +109,9 @@ def replace_rows(
         optimizer = optimizers.get(name)
         if optimizer is not None:
             for group in optimizer.param_groups:
+                if any(p is param for p in group["params"]) and group.get("row_scale") is not None:
+                    row_scale = group["row_scale"]
+                    group["row_scale"] = torch.cat([row_scale[keep], row_scale.new_ones(appended.shape[0])])
                 group["params"] = [new_param if p is param else p for p in group["params"]]
             state = optimizer.state.pop(param, None)
             if state is not None:

@@ -13,7 +13,7 @@ colours are drawn by the CPU generator (the same colours on every device) and mo
 from __future__ import annotations
 
 import random
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import torch
@@ -115,9 +115,12 @@ def train(
     config: TrainConfig | None = None,
     progress: bool = True,
     pose_refiner: PoseRefiner | None = None,
+    rate_scales: Mapping[str, torch.Tensor] | None = None,
 ) -> Avatar:
     """Optimise `avatar` in place on the video frames and edits, on the avatar's device; returns it.
 
+    rate_scales: optional per-Gaussian (N,) factors on the learning rates of named parameters
+    (`Avatar.params` names).
     pose_refiner: optional per-frame pose offsets of the video (one per entry of `video`), optimised
     along with the avatar; read the result with `pose_refiner.refined(...)`. It must live on the
     avatar's device.
@@ -131,7 +134,7 @@ def train(
     torch.manual_seed(config.seed)
     chooser = random.Random(config.seed)
     rates = config.learning_rates
-    optimizers = create_optimizers(avatar.params, rates)
+    optimizers = create_optimizers(avatar.params, rates, row_scales=rate_scales)
     strategy = DensifyStrategy(config.densify, seed=config.seed)
     state = strategy.initialize_state()
     regions = [_supervised_region(view, config.bbox_margin) for view in video]

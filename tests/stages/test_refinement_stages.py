@@ -240,6 +240,45 @@ def test_apply_edit_refine_revert_loop(workspace: Path, tmp_path: Path):
     assert sorted(p.name for p in (workspace / "avatar").iterdir()) == ["000.ply", "001.ply", "002.ply", "003.ply"]
 
 
+def test_refine_gives_the_barely_seen_gaussians_the_first_fits_rates(workspace: Path, tmp_path: Path, monkeypatch):
+    """With an edit, the Gaussians the video saw less than average (V < mean V, of those the edit's stroke left)
+    learn positions and shapes at GART's rates, the others at refine's; --slow-barely-seen keeps refine's."""
+    from avatarperfect_cli.refinement.erase import centres_in_region
+    from avatarperfect_cli.stages import refine as stage
+    from avatarperfect_cli.training.trainer import TrainConfig
+
+    captured = []
+
+    def recording_train(avatar, video, edits, config, progress, rate_scales):
+        captured.append((len(avatar), rate_scales))
+        return avatar
+
+    monkeypatch.setattr(stage, "train", recording_train)
+    assert invoke("suggest", workspace, *FAST_SUGGEST).exit_code == 0
+    edited, _ = _paint_background_square(workspace, tmp_path)
+    assert invoke("apply-edit", workspace, edited).exit_code == 0
+    assert invoke("refine", workspace, "--iterations", "5").exit_code == 0
+    with np.load(workspace / "visibility" / "000.npz") as data:
+        visibility = torch.from_numpy(data["visibility"])
+    avatar = Avatar.load(workspace / "avatar" / "000.ply")
+    background = read_image(workspace / "edits" / "001" / "background.png", "L")[..., 0] >= 0.5
+    seen = visibility >= visibility.mean()
+    kept = ~(centres_in_region(avatar, read_pose(workspace / "edits" / "001" / "pose.json"), background) & ~seen)
+    count, scales = captured[-1]
+    assert count == int(kept.sum()) < len(avatar)
+    gart, refine_rates = TrainConfig().learning_rates, stage.refine_config(stage.RefineSettings()).learning_rates
+    barely = ~seen[kept]
+    assert 0 < int(barely.sum()) < count
+    for name in ("means", "quats", "log_scales"):
+        assert scales[name].shape == (count,)
+        assert torch.all(scales[name][~barely] == 1.0)
+        torch.testing.assert_close(scales[name][barely] * refine_rates.at(name, 0), torch.full((int(barely.sum()),), gart.at(name, 0)))
+    assert set(scales) == {"means", "quats", "log_scales"}
+    assert open_workspace(workspace).manifest["history"][-1]["barely_seen_rates"] is True
+    assert invoke("refine", workspace, "--iterations", "5", "--slow-barely-seen").exit_code == 0
+    assert captured[-1][1] is None and open_workspace(workspace).manifest["history"][-1]["barely_seen_rates"] is False
+
+
 def test_blank_and_wrong_size_edits_are_refused(workspace: Path, tmp_path: Path):
     assert invoke("suggest", workspace, *FAST_SUGGEST).exit_code == 0
     before = snapshot(workspace)

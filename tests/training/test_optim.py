@@ -91,3 +91,43 @@ def test_adam_matches_torch_optim_adam(dtype, on_torch_ops, eps, monkeypatch) ->
     assert adam.state[ours[1]]["step"] == 5 and adam.state[ours[0]]["step"] == 6
     adam.zero_grad()
     assert all(param.grad is None for param in ours)
+
+
+@pytest.mark.parametrize("on_torch_ops", [False, True])
+def test_row_scale_scales_each_rows_steps(on_torch_ops, monkeypatch) -> None:
+    """Adam's moments do not depend on the parameter, so with per-row factors s every row moves s times as
+    far as plain torch.optim.Adam moves it, over any number of steps (a factor 0 freezes the row)."""
+    if on_torch_ops:
+        monkeypatch.setattr(optim, "_adam_rows_kernel", lambda *args: pytest.fail("the kernel ran"))
+        monkeypatch.setattr(torch.Tensor, "is_contiguous", lambda self, *args, **kwargs: False)
+    generator = torch.Generator().manual_seed(1)
+    start = torch.randn(40, 2, 3, generator=generator, dtype=torch.float64)
+    scale = torch.linspace(0.0, 33.0, 40, dtype=torch.float64)
+    ours, reference = torch.nn.Parameter(start.clone()), torch.nn.Parameter(start.clone())
+    adam = Adam([{"params": [ours], "lr": 1e-3, "row_scale": scale}])
+    torch_adam = torch.optim.Adam([reference], lr=1e-3, eps=ADAM_EPS)
+    for _ in range(5):
+        grad = torch.randn(start.shape, generator=generator, dtype=torch.float64)
+        ours.grad, reference.grad = grad.clone(), grad.clone()
+        adam.step()
+        torch_adam.step()
+    monkeypatch.undo()
+    expected = start + scale[:, None, None] * (reference.detach() - start)
+    torch.testing.assert_close(ours.detach(), expected, rtol=1e-12, atol=1e-12)
+    assert torch.equal(ours.detach()[0], start[0]) and (ours.detach()[-1] - start[-1]).abs().min() > 1e-3
+
+
+def test_row_scale_must_match_the_rows() -> None:
+    param = torch.nn.Parameter(torch.zeros(5, 3))
+    param.grad = torch.ones(5, 3)
+    with pytest.raises(ValueError, match="5"):
+        Adam([{"params": [param], "lr": 0.1, "row_scale": torch.ones(4)}]).step()
+
+
+def test_create_optimizers_puts_row_scales_in_the_named_groups() -> None:
+    params = {"means": torch.nn.Parameter(torch.zeros(3, 3)), "sh_dc": torch.nn.Parameter(torch.zeros(3, 1, 3))}
+    optimizers = create_optimizers(params, LearningRates(), row_scales={"means": torch.tensor([0.0, 1.0, 10.0])})
+    torch.testing.assert_close(optimizers["means"].param_groups[0]["row_scale"], torch.tensor([0.0, 1.0, 10.0]))
+    assert "row_scale" not in optimizers["sh_dc"].param_groups[0]
+    with pytest.raises(ValueError, match="colour"):
+        create_optimizers(params, LearningRates(), row_scales={"colour": torch.ones(3)})

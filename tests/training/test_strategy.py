@@ -113,6 +113,25 @@ def test_clone_split_prune_keep_params_and_adam_state_consistent() -> None:
         assert (param[:4] != before[name][kept]).all()
 
 
+def test_densification_keeps_per_row_rate_factors_in_step() -> None:
+    params = make_params(6)
+    with torch.no_grad():
+        params["log_scales"][1] = torch.log(torch.tensor([0.05, 0.01, 0.003]))  # large: split
+        params["opacity_logits"][2] = -3.0  # pruned
+    factors = torch.arange(6, dtype=torch.float32) + 10.0
+    optimizers = create_optimizers(params, LearningRates(skin_start=0), row_scales={"means": factors})
+    strategy = DensifyStrategy(DensifyConfig(refine_start=1, refine_every=10, refine_stop=50, grad_threshold=1e-4))
+    state = strategy.initialize_state()
+    high, low = 1e-5, 1e-8
+    screen_grad = torch.tensor([[high, 0], [high, 0], [high, 0], [low, 0], [high, 0], [low, low]])
+    radii = torch.tensor([3, 3, 3, 3, 0, 3], dtype=torch.int32)
+    run_step(strategy, params, optimizers, state, 0, screen_grad, radii)
+    run_step(strategy, params, optimizers, state, 1, screen_grad, radii)
+    # rows kept (0, 3, 4, 5) keep their factors; the clone and the two children start at 1
+    torch.testing.assert_close(optimizers["means"].param_groups[0]["row_scale"], torch.tensor([10.0, 13, 14, 15, 1, 1, 1]))
+    assert "row_scale" not in optimizers["quats"].param_groups[0]
+
+
 def test_split_children_sample_the_parent_in_its_local_frame() -> None:
     n = 200
     params = make_params(n)

@@ -229,3 +229,16 @@ def test_edit_loss_weight_lets_the_video_outweigh_an_edit_it_contradicts():
         reds.append(float(image[inside][:, 0].mean() - image[inside][:, 1:].mean()))
     assert fits[1] > fits[0] + 1.0, fits
     assert reds[1] < reds[0], reds
+
+
+def test_rate_scales_set_each_gaussians_learning_rate():
+    """A factor 0 leaves a Gaussian's parameter where it was; the others train."""
+    video = video_of(coloured_avatar())
+    target = Avatar.from_template(sphere_template(), sh_degree=1)  # grey: every colour must change
+    frozen = torch.zeros(len(target), dtype=torch.bool)
+    frozen[::2] = True
+    scales = {"sh_dc": (~frozen).float()}
+    train(target, video, config=TrainConfig(iterations=10), progress=False, rate_scales=scales)
+    moved = (target.params["sh_dc"].detach() - rgb_to_sh(torch.full((3,), 0.5))).abs().amax(dim=(1, 2)) > 0
+    assert not moved[frozen].any()
+    assert moved[~frozen].float().mean() > 0.5
