@@ -6,7 +6,9 @@ applied are recorded in its history entry). Then training continues on the video
 edits (an edit drawn with probability `edit_probability`, its loss masked by M_k; background pixels
 of an edit supervise towards the step's random background colour, so Gaussians there must vanish; an
 edit step's loss weighs `EDIT_LOSS_WEIGHT` of a video step's, so an edit repairs what the video never
-showed without undoing what it did).
+showed without undoing what it did). Positions and shapes learn slowly, except, when there are edits,
+those of the Gaussians the video saw less than average (V_i < mean V): the video hardly constrains
+them, so they learn at GART's rates (`barely_seen_rate_scales`).
 Floaters at the armpits and crotch come from wrong skinning, so before training every Gaussian's skinning
 weights move toward the body template's at its canonical position, as far as moves it at most
 `template_shift` in any training frame (`template_skinning` caps the share; body/template_skinning.py),
@@ -158,9 +160,9 @@ def barely_seen_rate_scales(seen: torch.Tensor) -> dict[str, torch.Tensor]:
     rates, and leave the others at refine's.
 
     Refine moves shapes and positions slowly so that the video's Gaussians keep fitting the training
-    poses (`REFINE_SHAPE_RATE_FACTOR`). The barely seen ones have nothing there to keep, and only the
-    edits tell them anything: at refine's rates they keep the initial fit's shapes, which can hold no
-    more detail than the template's vertex spacing (the armpit's checker, docs/study.md)."""
+    poses (`REFINE_SHAPE_RATE_FACTOR`). The barely seen ones have little there to keep, and mostly the
+    edits tell them what to be: at refine's rates they keep the initial fit's shapes, which can hold no
+    more detail than the template's vertex spacing (the armpit's checker, docs/refine.md)."""
     barely = (~seen).float()
     factors = {"means": BARELY_SEEN_MEANS_FACTOR, "quats": 1.0 / REFINE_SHAPE_RATE_FACTOR, "log_scales": 1.0 / REFINE_SHAPE_RATE_FACTOR}
     return {name: 1.0 + (factor - 1.0) * barely for name, factor in factors.items()}
