@@ -211,11 +211,10 @@ def refine(workspace_root: Path, settings: RefineSettings | None = None, progres
         edits = registered_edits(workspace)
         done = set(applied_edits(workspace))
         new_edits = [edit for edit in edits if edit.number not in done]
-        seen = seen_by_the_video(workspace, avatar, progress) if edits else None
-        avatar, deleted = delete_background(avatar, new_edits, seen if settings.protect_seen else None)
-        rate_scales = None
-        if seen is not None and settings.barely_seen_rates:
-            rate_scales = barely_seen_rate_scales(seen[~deleted])
+        protect = settings.protect_seen and any(bool(edit.background().any()) for edit in new_edits)
+        seen = seen_by_the_video(workspace, avatar, progress) if edits and (protect or settings.barely_seen_rates) else None
+        avatar, deleted = delete_background(avatar, new_edits, seen if protect else None)
+        rate_scales = barely_seen_rate_scales(seen[~deleted]) if seen is not None and settings.barely_seen_rates else None
         deleted = int(deleted.sum())
         video = load_video(workspace)
         if settings.template_skinning > 0.0:
