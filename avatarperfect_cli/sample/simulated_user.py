@@ -18,8 +18,10 @@ of the broad regions stay), then split into 8-connected blobs; blobs under `min_
 ignored. Blobs are painted most wrong first (`priority="error"`: the largest sum of the blurred
 difference over the blob's pixels, so a glaring floater comes before a wide, faintly off patch; the
 person fixes what looks worst) or largest first (`priority="area"`: most pixels), while their strokes
-fit in the budget; a blob whose stroke would overrun the budget is skipped whole (never clipped) and
-the next ones are still tried.
+fit in the budget; a blob whose stroke would overrun the budget is skipped whole and the next ones are
+still tried. Only when no blob fits at all does the person paint part of the first one: its pixels
+within the largest distance of its most wrong pixel whose stroke fits (the worst spot, as far as the
+budget goes), so a subject with nothing but large wrong regions still gets an edit.
 
 A stroke covers its blob fully and fades out beyond it like a soft brush: weight 1 - d / (feather + 1)
 at distance d px from the blob, so with the default 1 px feather the ring of pixels around a blob gets
@@ -168,7 +170,11 @@ def paint(
     subject_pixels = int((truth_shows | avatar_shows).sum())
     budget_pixels = math.floor(config.budget * subject_pixels)
     reach = config.brush_feather_px + 1.0  # stroke weight 1 - d / reach at distance d from the blob
+    found = _pixels_of(blobs, component_images, white=True) | _pixels_of(blobs, component_images, white=False)
     chosen = _choose_blobs(blobs, component_images, reach, budget_pixels, (height, width))
+    if not chosen and blobs:
+        first = blobs[0]
+        chosen = _clip_blob(first, component_images[first.white], difference, reach, budget_pixels)
 
     in_white = _pixels_of(chosen, component_images, white=True)
     in_colour = _pixels_of(chosen, component_images, white=False)
@@ -184,7 +190,6 @@ def paint(
     blend = image * (1.0 - weight[..., None]) + paint_layer * weight[..., None]
     edited = np.where(footprint[..., None], blend, image)
 
-    found = _pixels_of(blobs, component_images, white=True) | _pixels_of(blobs, component_images, white=False)
     painted_pixels = int(footprint.sum())
     stats = PaintStats(
         subject_pixels=subject_pixels,
@@ -268,6 +273,33 @@ def _choose_blobs(
         used += added
         chosen.append(blob)
     return chosen
+
+
+def _clip_blob(blob: _Blob, labels: np.ndarray, difference: np.ndarray, reach: float, budget_pixels: int) -> list[_Blob]:
+    """[blob cut down to its pixels within the largest distance of its most wrong pixel (largest
+    `difference` (H, W)) whose stroke fits `budget_pixels`], or [] when not even that pixel's does. The cut
+    edits `labels` (H, W) in place: the rest of the blob is unlabelled."""
+    x, y, w, h = blob.box
+    pad = math.ceil(reach)
+    rows = slice(max(y - pad, 0), min(y + h + pad, labels.shape[0]))
+    cols = slice(max(x - pad, 0), min(x + w + pad, labels.shape[1]))
+    inside = labels[rows, cols] == blob.label
+    peak = np.unravel_index(np.argmax(np.where(inside, difference[rows, cols], -np.inf)), inside.shape)
+    row_index, col_index = np.indices(inside.shape)
+    from_peak = np.hypot(row_index - peak[0], col_index - peak[1])
+    radii = np.unique(from_peak[inside])
+
+    def stroke_pixels(radius: float) -> int:
+        return int((_distance_to(inside & (from_peak <= radius)) < reach).sum())
+
+    fits, too_big = -1, len(radii)  # strokes grow with the radius: the largest index that fits
+    while too_big - fits > 1:
+        middle = (fits + too_big) // 2
+        fits, too_big = (middle, too_big) if stroke_pixels(radii[middle]) <= budget_pixels else (fits, middle)
+    if fits < 0:
+        return []
+    labels[rows, cols][inside & (from_peak > radii[fits])] = 0
+    return [_Blob(blob.white, blob.label, int((inside & (from_peak <= radii[fits])).sum()), blob.error, blob.box)]
 
 
 def _stroke_weight(interior: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:

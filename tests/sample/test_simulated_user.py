@@ -193,6 +193,27 @@ def test_priority_decides_which_blob_a_tight_budget_paints(priority: str) -> Non
     assert painted[expected].mean() > 0.8 and not painted[other].any()
 
 
+def test_when_no_blob_fits_the_worst_spot_of_the_first_is_painted() -> None:
+    """A budget under every blob's stroke: the user paints the first blob (the glaring floater) around its
+    most wrong pixel as far as the budget goes, not nothing, and still reports every wrong pixel found."""
+    truth, suggested, alpha, faint, strong = _faint_and_strong_scene()
+    subject_pixels = int(((truth.coverage >= 0.5) | (alpha.numpy() > 0.5)).sum())
+    everything = paint(suggested, alpha, truth, UserConfig(budget=1.0))
+    strokes = [int(cv2.dilate(blob.astype(np.uint8), np.ones((3, 3), np.uint8)).sum()) for blob in _blobs(everything.stroke_weight.numpy())]
+    budget_pixels = min(strokes) // 2
+    result = paint(suggested, alpha, truth, UserConfig(budget=(budget_pixels + 0.5) / subject_pixels))
+    painted = result.stroke_weight.numpy() == 1.0
+    assert result.stats.budget_pixels == budget_pixels and result.stats.blobs_painted == 1
+    assert 0 < result.stats.painted_pixels <= budget_pixels
+    assert painted.any() and not painted[~strong].any() and painted.sum() >= 0.3 * budget_pixels
+    assert len(_blobs(result.stroke_weight.numpy())) == 1, "one stroke around the worst spot"
+    np.testing.assert_array_equal(result.image.numpy()[painted], np.ones((int(painted.sum()), 3), np.float32))
+    assert result.stats.wrong_pixels == everything.stats.wrong_pixels
+    # Not even one pixel's stroke fits: nothing is painted.
+    tiny = paint(suggested, alpha, truth, UserConfig(budget=2.5 / subject_pixels))
+    assert tiny.stats.painted_pixels == 0 and torch.equal(tiny.image, suggested)
+
+
 @pytest.mark.parametrize("feather", [0.0, 1.0, 2.0])
 def test_strokes_have_a_soft_edge_of_the_feather_width(feather: float) -> None:
     scene = _scene()
