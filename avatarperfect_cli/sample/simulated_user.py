@@ -248,6 +248,13 @@ def _distance_to(mask: np.ndarray) -> np.ndarray:
     return cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
 
 
+def _stroke_window(blob: _Blob, reach: float, size: tuple[int, ...]) -> tuple[slice, slice]:
+    """(rows, cols): the blob's box grown by the stroke's reach, within an image of `size` (H, W)."""
+    x, y, w, h = blob.box
+    pad = math.ceil(reach)
+    return slice(max(y - pad, 0), min(y + h + pad, size[0])), slice(max(x - pad, 0), min(x + w + pad, size[1]))
+
+
 def _choose_blobs(
     blobs: list[_Blob],
     component_images: dict[bool, np.ndarray],
@@ -259,12 +266,9 @@ def _choose_blobs(
     together in `budget_pixels`; a blob that does not fit is skipped."""
     covered = np.zeros(size, bool)
     used = 0
-    pad = math.ceil(reach)
     chosen = []
     for blob in blobs:
-        x, y, w, h = blob.box
-        rows = slice(max(y - pad, 0), min(y + h + pad, size[0]))
-        cols = slice(max(x - pad, 0), min(x + w + pad, size[1]))
+        rows, cols = _stroke_window(blob, reach, size)
         stroke = _distance_to(component_images[blob.white][rows, cols] == blob.label) < reach
         added = int((stroke & ~covered[rows, cols]).sum())
         if used + added > budget_pixels:
@@ -279,10 +283,7 @@ def _clip_blob(blob: _Blob, labels: np.ndarray, difference: np.ndarray, reach: f
     """[blob cut down to its pixels within the largest distance of its most wrong pixel (largest
     `difference` (H, W)) whose stroke fits `budget_pixels`], or [] when not even that pixel's does. The cut
     edits `labels` (H, W) in place: the rest of the blob is unlabelled."""
-    x, y, w, h = blob.box
-    pad = math.ceil(reach)
-    rows = slice(max(y - pad, 0), min(y + h + pad, labels.shape[0]))
-    cols = slice(max(x - pad, 0), min(x + w + pad, labels.shape[1]))
+    rows, cols = _stroke_window(blob, reach, labels.shape)
     inside = labels[rows, cols] == blob.label
     peak = np.unravel_index(np.argmax(np.where(inside, difference[rows, cols], -np.inf)), inside.shape)
     row_index, col_index = np.indices(inside.shape)
