@@ -340,6 +340,9 @@ def refine(
     slow_barely_seen: bool = typer.Option(
         False, "--slow-barely-seen", help="Gaussians the video barely saw move and reshape as slowly as the rest (by default as in the first fit)."
     ),
+    no_split: bool = typer.Option(
+        False, "--no-split", help="Keep the Gaussian count: do not split the large barely seen Gaussians under a new edit's strokes."
+    ),
     seed: int = typer.Option(0, help="Random seed."),
     revert_to: Optional[int] = typer.Option(None, "--revert-to", help="Make avatar iteration K current again (keeps the others)."),
     delete_seen: bool = typer.Option(
@@ -365,7 +368,7 @@ def refine(
         share = None if uniform_edits else new_edit_share
         settings = stage.RefineSettings(
             iterations, edit_probability, seed, protect_seen=not delete_seen, new_edit_share=share, keep_shapes=keep_shapes,
-            edit_loss_weight=edit_loss_weight, barely_seen_rates=not slow_barely_seen,
+            edit_loss_weight=edit_loss_weight, barely_seen_rates=not slow_barely_seen, split_painted=None if no_split else stage.SPLIT_PAINTED,
             template_skinning=template_skinning, template_shift=template_shift_mm / 1e3, smpl_model_dir=smpl_model_dir,
             device=torch_device,
         )  # fmt: skip

@@ -224,6 +224,11 @@ class Avatar:
         moved = {name: param.detach().to(device) for name, param in self.params.items()}
         return Avatar(moved, self.rest_joints.to(device), self.sh_degree, self.active_sh_degree, self.body_model)
 
+    def with_params(self, params: Mapping[str, torch.Tensor]) -> Avatar:
+        """A new avatar of the given per-Gaussian parameters (any count; `PARAMETER_NAMES`) with this one's rest
+        joints, SH degrees and body model."""
+        return Avatar(params, self.rest_joints, self.sh_degree, self.active_sh_degree, self.body_model)
+
     def to_gaussians(self) -> Gaussians:
         """The canonical avatar as a detached `Gaussians` with the skinning extra and the metadata."""
         p = {name: param.detach() for name, param in self.params.items()}

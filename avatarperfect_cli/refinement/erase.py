@@ -64,4 +64,4 @@ def delete_gaussians(avatar: Avatar, delete: torch.Tensor) -> Avatar:
     """A new avatar without the Gaussians where `delete` (N,) bool is set."""
     keep = ~delete
     params = {name: avatar.params[name].detach()[keep] for name in PARAMETER_NAMES}
-    return Avatar(params, avatar.rest_joints, avatar.sh_degree, avatar.active_sh_degree, avatar.body_model)
+    return avatar.with_params(params)

@@ -35,6 +35,23 @@ def gaussian_visibility(avatar: Avatar, view: PoseFile, world_transform: torch.T
     return out.visibility.double()
 
 
+def painted_visibility(avatar: Avatar, view: PoseFile, pixel_weight: torch.Tensor) -> torch.Tensor:
+    """(N,) float64: sum over the pixels p of pixel_weight[p] * T_i^p * alpha_i^p, each Gaussian's visibility
+    counted over the weighted pixels only (pixel_weight (H, W), e.g. an edit's mask M_k), on the avatar's
+    device.
+
+    The blend weight T_i^p * alpha_i^p is the derivative of pixel p's colour with respect to Gaussian i's
+    colour, so one backward pass through a one-channel render gives the sum on either backend."""
+    with torch.no_grad():
+        means, quats = avatar.pose(view.body_pose, view.transl)
+        scales, opacities = avatar.scales, avatar.opacities
+    colors = torch.zeros(len(avatar), 1, dtype=means.dtype, device=means.device, requires_grad=True)
+    with torch.enable_grad():
+        image = rasterization(means, quats, scales, opacities, colors, view.camera).image
+        (image[..., 0] * pixel_weight.to(image)).sum().backward()
+    return colors.grad[:, 0].double()
+
+
 def mean_visibility(avatar: Avatar, views: Iterable[PoseFile]) -> tuple[torch.Tensor, int]:
     """(N,) float64 mean of sigma over `views` (on the avatar's device), and how many views there were
     (zeros for none)."""

@@ -8,7 +8,9 @@ of an edit supervise towards the step's random background colour, so Gaussians t
 edit step's loss weighs `EDIT_LOSS_WEIGHT` of a video step's, so an edit repairs what the video never
 showed without undoing what it did). Positions and shapes learn slowly, except, when there are edits,
 those of the Gaussians the video saw less than average (V_i < mean V): the video hardly constrains
-them, so they learn at GART's rates (`barely_seen_rate_scales`).
+them, so they learn at GART's rates (`barely_seen_rate_scales`), and those of them wider than 5 mm under a
+new edit's strokes are first split in two, so the edit has Gaussians as fine as what it paints
+(`split_barely_seen_under_edits`).
 Floaters at the armpits and crotch come from wrong skinning, so before training every Gaussian's skinning
 weights move toward the body template's at its canonical position, as far as moves it at most
 `template_shift` in any training frame (`template_skinning` caps the share; body/template_skinning.py),
@@ -20,6 +22,7 @@ committed by the manifest; every earlier iteration stays. `revert` makes an earl
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -35,9 +38,10 @@ from avatarperfect_cli.devices import CPU
 from avatarperfect_cli.errors import AvatarPerfectError
 from avatarperfect_cli.io.workspace import Workspace, locked_workspace
 from avatarperfect_cli.refinement.erase import centres_in_region, delete_gaussians
-from avatarperfect_cli.refinement.visibility import DEFAULT_EDIT_WEIGHT
+from avatarperfect_cli.refinement.visibility import DEFAULT_EDIT_WEIGHT, painted_visibility
 from avatarperfect_cli.stages.visibility import current_visibility
 from avatarperfect_cli.stages.workspace_data import RegisteredEdit, applied_edits, load_video, registered_edits
+from avatarperfect_cli.training.strategy import DensifyConfig, split_children
 from avatarperfect_cli.training.trainer import TrainConfig, train, video_views
 
 
@@ -53,6 +57,12 @@ from avatarperfect_cli.training.trainer import TrainConfig, train, video_views
 EDIT_LOSS_WEIGHT = 0.25
 
 
+# Blend weight over a new edit's strokes, pixels, from which a barely seen Gaussian wider than 5 mm is split in
+# two before training (`split_barely_seen_under_edits`): about 1,000 of the ~48,000 Gaussians per edit on
+# the 512² study avatars.
+SPLIT_PAINTED = 0.1
+
+
 @dataclass
 class RefineSettings:
     """iterations: training steps (the paper: 500); edit_probability: share of steps that draw an edit (0.3);
@@ -65,6 +75,8 @@ class RefineSettings:
     edit_loss_weight: an edit step's loss against a video step's (1: the paper; see `EDIT_LOSS_WEIGHT`);
     barely_seen_rates: when there are edits, the Gaussians the video saw less than average learn positions
     and shapes at GART's rates, the others at refine's (`barely_seen_rate_scales`);
+    split_painted: pixels; the barely seen Gaussians wider than 5 mm that a new edit's strokes show with at
+    least this much blend weight are split in two first (`split_barely_seen_under_edits`; None: never);
     template_skinning: the largest share of the way each Gaussian's skinning weights move to the body
     template's at its canonical position before training (1: the template's, 0: the learned ones kept);
     template_shift: metres; the move is cut short where it would shift the Gaussian further than this in
@@ -79,6 +91,7 @@ class RefineSettings:
     keep_shapes: bool = False
     edit_loss_weight: float = EDIT_LOSS_WEIGHT
     barely_seen_rates: bool = True
+    split_painted: float | None = SPLIT_PAINTED
     template_skinning: float = 1.0
     template_shift: float = 0.003
     smpl_model_dir: Path | None = None
@@ -107,6 +120,31 @@ def seen_by_the_video(workspace: Workspace, avatar: Avatar, progress: bool) -> t
     on the training frames)."""
     visibility = current_visibility(workspace, avatar, DEFAULT_EDIT_WEIGHT, progress).visibility
     return visibility >= visibility.mean()
+
+
+def split_barely_seen_under_edits(
+    avatar: Avatar, seen: torch.Tensor, edits: list[RegisteredEdit], min_painted: float, seed: int
+) -> tuple[Avatar, torch.Tensor, int]:
+    """Split in two (3DGS's split, `split_children`) every Gaussian that the video saw less than average
+    (`seen` (N,) bool False), that the `edits`' strokes show (blend weight summed over their masks M_k at
+    least `min_painted` pixels) and whose largest standard deviation exceeds GART's clone/split size
+    (`DensifyConfig.clone_max_scale`, 5 mm). Returns the new avatar, its `seen` (children are barely
+    seen) and how many were split.
+
+    An edit can only teach detail as fine as the Gaussians under its strokes, and refine does not densify
+    (`refine_config`): the barely seen ones keep the initial fit's sizes, about as wide as the checker
+    cells of the sample's hidden regions (docs/study.md)."""
+    painted = torch.zeros(len(avatar), dtype=torch.float64, device=avatar.device)
+    for edit in edits:
+        painted += painted_visibility(avatar, edit.pose, edit.training_view().loss_mask.double())
+    densify = DensifyConfig()
+    large = avatar.params["log_scales"].detach().amax(dim=-1) > math.log(densify.clone_max_scale)
+    split = ~seen & (painted >= min_painted) & large
+    params = {name: param.detach() for name, param in avatar.params.items()}
+    children = split_children(params, split, densify.split_factor, torch.Generator().manual_seed(seed))
+    params = {name: torch.cat([param[~split], children[name]]) for name, param in params.items()}
+    children_seen = seen.new_zeros(len(children["means"]))
+    return avatar.with_params(params), torch.cat([seen[~split], children_seen]), int(split.sum())
 
 
 def pull_toward_template_skinning(avatar: Avatar, video: VideoDataset, settings: RefineSettings) -> None:
@@ -200,6 +238,8 @@ def refine(workspace_root: Path, settings: RefineSettings | None = None, progres
         raise AvatarPerfectError(f"--edit-loss-weight must be positive, got {settings.edit_loss_weight:g}")
     if settings.new_edit_share is not None and not 0.0 < settings.new_edit_share <= 1.0:
         raise AvatarPerfectError(f"--new-edit-share must be in (0, 1], got {settings.new_edit_share}")
+    if settings.split_painted is not None and not settings.split_painted > 0.0:
+        raise AvatarPerfectError(f"the split threshold must be positive, got {settings.split_painted:g} pixels")
     if not 0.0 <= settings.template_skinning <= 1.0:
         raise AvatarPerfectError(f"--template-skinning must be in [0, 1], got {settings.template_skinning}")
     if not settings.template_shift > 0.0:
@@ -212,15 +252,20 @@ def refine(workspace_root: Path, settings: RefineSettings | None = None, progres
         done = set(applied_edits(workspace))
         new_edits = [edit for edit in edits if edit.number not in done]
         protect = settings.protect_seen and any(bool(edit.background().any()) for edit in new_edits)
-        seen = seen_by_the_video(workspace, avatar, progress) if edits and (protect or settings.barely_seen_rates) else None
+        needs_seen = protect or settings.barely_seen_rates or settings.split_painted is not None
+        seen = seen_by_the_video(workspace, avatar, progress) if edits and needs_seen else None
         avatar, deleted = delete_background(avatar, new_edits, seen if protect else None)
-        rate_scales = barely_seen_rate_scales(seen[~deleted]) if seen is not None and settings.barely_seen_rates else None
+        seen = None if seen is None else seen.to(avatar.device)[~deleted]
+        split = 0
+        if seen is not None and settings.split_painted is not None and new_edits:
+            avatar, seen, split = split_barely_seen_under_edits(avatar, seen, new_edits, settings.split_painted, settings.seed)
+        rate_scales = barely_seen_rate_scales(seen) if seen is not None and settings.barely_seen_rates else None
         deleted = int(deleted.sum())
         video = load_video(workspace)
         if settings.template_skinning > 0.0:
             pull_toward_template_skinning(avatar, video, settings)
         console.print(
-            f"refining avatar {workspace.iteration:03d} ({len(avatar):,} Gaussians after deleting {deleted:,}) "
+            f"refining avatar {workspace.iteration:03d} ({len(avatar):,} Gaussians after deleting {deleted:,} and splitting {split:,}) "
             f"on {len(video)} frames and {len(edits)} edits"
         )
         weights = edit_draw_weights(edits, {edit.number for edit in new_edits}, settings.new_edit_share)
@@ -238,6 +283,7 @@ def refine(workspace_root: Path, settings: RefineSettings | None = None, progres
                 "edits": [edit.number for edit in edits],
                 "applied_edits": sorted(done | {edit.number for edit in edits}),
                 "deleted": deleted,
+                "split": split,
                 "iterations": settings.iterations,
                 "edit_probability": settings.edit_probability,
                 "new_edit_share": settings.new_edit_share,

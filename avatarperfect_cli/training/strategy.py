@@ -30,7 +30,7 @@ the Gaussian was drawn.
 from __future__ import annotations
 
 import math
-from collections.abc import MutableMapping
+from collections.abc import Mapping, MutableMapping
 from dataclasses import dataclass
 
 import torch
@@ -120,6 +120,24 @@ def replace_rows(
                         state[key] = torch.cat([value[keep], value.new_zeros((appended.shape[0],) + value.shape[1:])])
                 optimizer.state[new_param] = state
         params[name] = new_param
+
+
+@torch.no_grad()
+def split_children(
+    params: Mapping[str, torch.Tensor], split: torch.Tensor, split_factor: float, generator: torch.Generator
+) -> dict[str, torch.Tensor]:
+    """The two children of every Gaussian where `split` (N,) bool is set, as rows (2S, ...) per parameter
+    (all first children, then all second): each a copy of its parent, centred at a sample of the parent
+    Gaussian (means metres) and with its scales divided by `split_factor` (3DGS's split)."""
+    children = {name: torch.cat([param[split], param[split]]) for name, param in params.items()}
+    parents = params["means"][split]
+    scales = torch.exp(params["log_scales"][split])
+    offsets = torch.randn((2,) + parents.shape, generator=generator).to(parents)
+    local_offsets = offsets * scales  # (2, S, 3) samples of each parent Gaussian in its local frame
+    rotations = quaternion_to_matrix(params["quats"][split])
+    children["means"] = (parents + torch.einsum("sij,csj->csi", rotations, local_offsets)).reshape(-1, 3)
+    children["log_scales"] = children["log_scales"] - math.log(split_factor)
+    return children
 
 
 class DensifyStrategy:
@@ -212,16 +230,9 @@ class DensifyStrategy:
         clone = grow & (log_scales.amax(dim=-1) <= math.log(c.clone_max_scale))
         split = grow & ~clone
 
-        new_rows = {name: torch.cat([param[clone], param[split], param[split]]) for name, param in params.items()}
-        parents = params["means"][split]
-        scales = torch.exp(log_scales[split])
-        offsets = torch.randn((2,) + parents.shape, generator=self._generator).to(parents)
-        local_offsets = offsets * scales  # (2, S, 3) samples of each parent Gaussian in its local frame
-        rotations = quaternion_to_matrix(params["quats"][split])
-        sampled = parents + torch.einsum("sij,csj->csi", rotations, local_offsets)
+        children = split_children(params, split, c.split_factor, self._generator)
+        new_rows = {name: torch.cat([param[clone], children[name]]) for name, param in params.items()}
         clone_count = int(clone.sum())
-        new_rows["means"][clone_count:] = sampled.reshape(-1, 3)
-        new_rows["log_scales"][clone_count:] -= math.log(c.split_factor)
 
         replace_rows(params, optimizers, ~prune & ~split, new_rows)
         state.grad_norm_sum = None

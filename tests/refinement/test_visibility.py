@@ -14,6 +14,7 @@ from avatarperfect_cli.refinement.visibility import (
     accumulate_visibility,
     combine_visibility,
     gaussian_visibility,
+    painted_visibility,
     suggestion_weights,
 )
 from avatarperfect_cli.render import Camera, look_at
@@ -173,6 +174,29 @@ def test_world_transform_equals_moving_the_camera_the_other_way(scene) -> None:
     assert expected.sum() > 10.0
     torch.testing.assert_close(actual, expected, rtol=0, atol=1e-9)
     assert (actual - gaussian_visibility(avatar, view)).abs().max() > 1.0, "the transform must change what is seen"
+
+
+def test_painted_visibility_matches_a_one_hot_colour_render(scene) -> None:
+    """Each Gaussian's blend weight over weighted pixels, against the dense renderer drawing Gaussian i in
+    colour channel i alone: channel i of pixel p is then T_i^p * alpha_i^p."""
+    avatar, video, _, (video_brute, _) = scene
+    view = video[0]
+    weight = torch.rand(HEIGHT, WIDTH, generator=torch.Generator().manual_seed(7), dtype=torch.float64)
+    weight[:, : WIDTH // 2] = 0.0
+    means, quats = rigid_pose(avatar, view)
+    p = avatar.params
+    one_hot = torch.eye(len(avatar), dtype=torch.float64)
+    image = rasterization_reference(
+        means, quats, torch.exp(p["log_scales"].detach()), torch.sigmoid(p["opacity_logits"].detach()), one_hot,
+        view.camera.to(dtype=torch.float64),
+    )[0]  # fmt: skip
+    expected = (image * weight[..., None]).sum(dim=(0, 1))
+    actual = painted_visibility(avatar, view, weight)
+    assert actual.dtype == torch.float64 and actual.shape == (len(avatar),)
+    torch.testing.assert_close(actual, expected, rtol=0, atol=1e-9)
+    assert int((expected > 0.01).sum()) >= 5, "the weighted half should show several Gaussians"
+    assert bool(((expected == 0) & (video_brute[0] > 0.01)).any()), "some Gaussians show only on the unweighted half"
+    torch.testing.assert_close(painted_visibility(avatar, view, torch.ones(HEIGHT, WIDTH)), video_brute[0], rtol=0, atol=1e-9)
 
 
 def test_suggestion_weights_clip_below_the_mean() -> None:

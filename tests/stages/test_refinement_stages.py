@@ -4,6 +4,7 @@ sample shrunk to 64²: what each writes, what each refuses, and that a refusal c
 from __future__ import annotations
 
 import hashlib
+import math
 import json
 import shutil
 from pathlib import Path
@@ -257,7 +258,7 @@ def test_refine_gives_the_barely_seen_gaussians_the_first_fits_rates(workspace: 
     assert invoke("suggest", workspace, *FAST_SUGGEST).exit_code == 0
     edited, _ = _paint_background_square(workspace, tmp_path)
     assert invoke("apply-edit", workspace, edited).exit_code == 0
-    assert invoke("refine", workspace, "--iterations", "5").exit_code == 0
+    assert invoke("refine", workspace, "--iterations", "5", "--no-split").exit_code == 0
     with np.load(workspace / "visibility" / "000.npz") as data:
         visibility = torch.from_numpy(data["visibility"])
     avatar = Avatar.load(workspace / "avatar" / "000.ply")
@@ -277,6 +278,53 @@ def test_refine_gives_the_barely_seen_gaussians_the_first_fits_rates(workspace: 
     assert open_workspace(workspace).manifest["history"][-1]["barely_seen_rates"] is True
     assert invoke("refine", workspace, "--iterations", "5", "--slow-barely-seen").exit_code == 0
     assert captured[-1][1] is None and open_workspace(workspace).manifest["history"][-1]["barely_seen_rates"] is False
+
+
+def test_refine_splits_the_large_barely_seen_gaussians_under_a_new_edit(workspace: Path, tmp_path: Path, monkeypatch):
+    """Before training, every Gaussian the video saw less than average, wider than 5 mm, that the new edit's
+    strokes show (blend weight over M_k at least 0.1 px) becomes two children at GART's rates; the others keep
+    their rows and order. --no-split keeps the count."""
+    from avatarperfect_cli.refinement.visibility import painted_visibility
+    from avatarperfect_cli.stages import refine as stage
+
+    captured = []
+
+    def recording_train(avatar, video, edits, config, progress, rate_scales):
+        captured.append(({name: param.detach().clone() for name, param in avatar.params.items()}, rate_scales))
+        return avatar
+
+    monkeypatch.setattr(stage, "train", recording_train)
+    assert invoke("suggest", workspace, *FAST_SUGGEST).exit_code == 0
+    painted = read_image(workspace / "suggestions" / "001" / "suggested.png", "RGB")
+    painted[20:44, 20:44] = torch.tensor([0.1, 0.7, 0.9])
+    write_image(tmp_path / "edited.png", painted)
+    assert invoke("apply-edit", workspace, tmp_path / "edited.png").exit_code == 0
+    assert invoke("refine", workspace, "--iterations", "5").exit_code == 0
+
+    with np.load(workspace / "visibility" / "000.npz") as data:
+        visibility = torch.from_numpy(data["visibility"])
+    avatar = Avatar.load(workspace / "avatar" / "000.ply")
+    mask = read_image(workspace / "edits" / "001" / "mask.png", "L")[..., 0] >= 0.5
+    shown = painted_visibility(avatar, read_pose(workspace / "edits" / "001" / "pose.json"), mask.double()) >= 0.1
+    barely = visibility < visibility.mean()
+    large = avatar.params["log_scales"].detach().amax(dim=-1) > math.log(0.005)
+    split = barely & shown & large
+    count = int(split.sum())
+    assert 0 < count < int((barely & shown).sum()), "the size rule should matter here"
+    assert int((barely & large).sum()) > count, "so should the strokes"
+    params, rates = captured[-1]
+    n = len(avatar)
+    assert params["means"].shape[0] == n + count and open_workspace(workspace).manifest["history"][-1]["split"] == count
+    torch.testing.assert_close(params["means"][: n - count], avatar.params["means"].detach()[~split], rtol=0, atol=0)
+    parents_log_scales = avatar.params["log_scales"].detach()[split]
+    torch.testing.assert_close(params["log_scales"][n - count :], torch.cat([parents_log_scales] * 2) - math.log(1.6))
+    gart = stage.barely_seen_rate_scales(torch.zeros(1, dtype=torch.bool))
+    for name, scale in rates.items():
+        assert torch.all(scale[n - count :] == gart[name][0]), name
+
+    assert invoke("refine", workspace, "--revert-to", "0").exit_code == 0
+    assert invoke("refine", workspace, "--iterations", "5", "--no-split").exit_code == 0
+    assert captured[-1][0]["means"].shape[0] == n and open_workspace(workspace).manifest["history"][-1]["split"] == 0
 
 
 def test_blank_and_wrong_size_edits_are_refused(workspace: Path, tmp_path: Path):

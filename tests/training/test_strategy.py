@@ -6,7 +6,7 @@ import torch
 from avatarperfect_cli.body import axis_angle_to_matrix, matrix_to_quaternion, quaternion_to_matrix
 from avatarperfect_cli.render import RenderOutput
 from avatarperfect_cli.training.optim import LearningRates, create_optimizers
-from avatarperfect_cli.training.strategy import DensifyConfig, DensifyStrategy, RefineStats
+from avatarperfect_cli.training.strategy import DensifyConfig, DensifyStrategy, RefineStats, split_children
 
 WIDTH, HEIGHT = 200, 100
 
@@ -153,6 +153,19 @@ def test_split_children_sample_the_parent_in_its_local_frame() -> None:
     std = local.reshape(-1, 3).std(dim=0)
     assert ((std > 0.85) & (std < 1.15)).all(), std
     torch.testing.assert_close(quaternion_to_matrix(params["quats"][:1])[0], rotation, atol=1e-6, rtol=0)
+
+
+def test_split_children_copy_their_parent_with_smaller_scales() -> None:
+    params = {name: param.detach() for name, param in make_params(5).items()}
+    split = torch.tensor([True, False, True, False, False])
+    children = split_children(params, split, 1.6, torch.Generator().manual_seed(0))
+    assert set(children) == set(params)
+    for name in ("quats", "opacity_logits", "sh_dc", "sh_rest", "skin_logits"):
+        torch.testing.assert_close(children[name], torch.cat([params[name][split]] * 2), rtol=0, atol=0)
+    torch.testing.assert_close(children["log_scales"], torch.cat([params["log_scales"][split]] * 2) - math.log(1.6))
+    offsets = children["means"] - torch.cat([params["means"][split]] * 2)
+    assert offsets.shape == (4, 3) and (offsets.norm(dim=-1) > 0).all() and offsets.norm(dim=-1).max() < 5 * math.sqrt(3) * 0.002
+    assert not torch.equal(offsets[:2], offsets[2:]), "the two children of a parent are two samples"
 
 
 def test_growth_stops_at_max_gaussians_keeping_the_largest_gradients() -> None:
