@@ -36,13 +36,14 @@ from avatarperfect_cli.body.template_skinning import bounded_pull_shares, templa
 from avatarperfect_cli.datasets import VideoDataset
 from avatarperfect_cli.devices import CPU
 from avatarperfect_cli.errors import AvatarPerfectError
+from avatarperfect_cli.io.pose_json import PoseFile
 from avatarperfect_cli.io.workspace import Workspace, locked_workspace
 from avatarperfect_cli.refinement.erase import centres_in_region, delete_gaussians
 from avatarperfect_cli.refinement.visibility import DEFAULT_EDIT_WEIGHT, painted_visibility
 from avatarperfect_cli.stages.visibility import current_visibility
 from avatarperfect_cli.stages.workspace_data import RegisteredEdit, applied_edits, load_video, registered_edits
 from avatarperfect_cli.training.strategy import DensifyConfig, split_children
-from avatarperfect_cli.training.trainer import TrainConfig, train, video_views
+from avatarperfect_cli.training.trainer import TrainConfig, TrainingView, train, video_views
 
 
 # An edit step's loss against a video step's (the paper: 1). One edit drawn in 150 of 500 steps outweighs
@@ -123,10 +124,10 @@ def seen_by_the_video(workspace: Workspace, avatar: Avatar, progress: bool) -> t
 
 
 def split_barely_seen_under_edits(
-    avatar: Avatar, seen: torch.Tensor, edits: list[RegisteredEdit], min_painted: float, seed: int
+    avatar: Avatar, seen: torch.Tensor, edits: list[TrainingView], min_painted: float, seed: int
 ) -> tuple[Avatar, torch.Tensor, int]:
     """Split in two (3DGS's split, `split_children`) every Gaussian that the video saw less than average
-    (`seen` (N,) bool False), that the `edits`' strokes show (blend weight summed over their masks M_k at
+    (`seen` (N,) bool False), that the edit views' strokes show (blend weight summed over their loss masks M_k at
     least `min_painted` pixels) and whose largest standard deviation exceeds GART's clone/split size
     (`DensifyConfig.clone_max_scale`, 5 mm). Returns the new avatar, its `seen` (children are barely
     seen) and how many were split.
@@ -136,7 +137,7 @@ def split_barely_seen_under_edits(
     cells of the sample's hidden regions (docs/study.md)."""
     painted = torch.zeros(len(avatar), dtype=torch.float64, device=avatar.device)
     for edit in edits:
-        painted += painted_visibility(avatar, edit.pose, edit.training_view().loss_mask.double())
+        painted += painted_visibility(avatar, PoseFile(edit.body_pose, edit.transl, edit.camera), edit.loss_mask.double())
     densify = DensifyConfig()
     large = avatar.params["log_scales"].detach().amax(dim=-1) > math.log(densify.clone_max_scale)
     split = ~seen & (painted >= min_painted) & large
@@ -252,13 +253,16 @@ def refine(workspace_root: Path, settings: RefineSettings | None = None, progres
         done = set(applied_edits(workspace))
         new_edits = [edit for edit in edits if edit.number not in done]
         protect = settings.protect_seen and any(bool(edit.background().any()) for edit in new_edits)
+        views = {edit.number: edit.training_view() for edit in edits}
         needs_seen = protect or settings.barely_seen_rates or settings.split_painted is not None
         seen = seen_by_the_video(workspace, avatar, progress) if edits and needs_seen else None
         avatar, deleted = delete_background(avatar, new_edits, seen if protect else None)
         seen = None if seen is None else seen.to(avatar.device)[~deleted]
         split = 0
         if seen is not None and settings.split_painted is not None and new_edits:
-            avatar, seen, split = split_barely_seen_under_edits(avatar, seen, new_edits, settings.split_painted, settings.seed)
+            avatar, seen, split = split_barely_seen_under_edits(
+                avatar, seen, [views[edit.number] for edit in new_edits], settings.split_painted, settings.seed
+            )
         rate_scales = barely_seen_rate_scales(seen) if seen is not None and settings.barely_seen_rates else None
         deleted = int(deleted.sum())
         video = load_video(workspace)
@@ -269,7 +273,7 @@ def refine(workspace_root: Path, settings: RefineSettings | None = None, progres
             f"on {len(video)} frames and {len(edits)} edits"
         )
         weights = edit_draw_weights(edits, {edit.number for edit in new_edits}, settings.new_edit_share)
-        edit_views = [replace(edit.training_view(), draw_weight=weight) for edit, weight in zip(edits, weights)]
+        edit_views = [replace(views[edit.number], draw_weight=weight) for edit, weight in zip(edits, weights)]
         train(avatar, video_views(video), edit_views, refine_config(settings), progress=progress, rate_scales=rate_scales)
         iteration = max(workspace.committed_avatars()) + 1
         path = workspace.avatar_path(iteration)
