@@ -354,6 +354,9 @@ def refine(
     template_shift_mm: float = typer.Option(
         3.0, help="...but no further than shifts a Gaussian this far in any training frame, mm (inf: no limit)."
     ),
+    no_reanchor: bool = typer.Option(
+        False, "--no-reanchor", help="Keep the canonical means and orientations when the skinning moves (every Gaussian then moves only as the shift bound allows)."
+    ),
     smpl_model_dir: Optional[Path] = typer.Option(None, help="Folder with your licensed SMPL model files (SMPL avatars)."),
     device: str = typer.Option("auto", help=DEVICE_HELP),
 ) -> None:
@@ -369,7 +372,8 @@ def refine(
         settings = stage.RefineSettings(
             iterations, edit_probability, seed, protect_seen=not delete_seen, new_edit_share=share, keep_shapes=keep_shapes,
             edit_loss_weight=edit_loss_weight, barely_seen_rates=not slow_barely_seen, split_painted=None if no_split else stage.SPLIT_PAINTED,
-            template_skinning=template_skinning, template_shift=template_shift_mm / 1e3, smpl_model_dir=smpl_model_dir,
+            template_skinning=template_skinning, template_shift=template_shift_mm / 1e3, reanchor=not no_reanchor,
+            smpl_model_dir=smpl_model_dir,
             device=torch_device,
         )  # fmt: skip
         stage.refine(workspace, settings)

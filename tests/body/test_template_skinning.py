@@ -8,12 +8,13 @@ import pytest
 import torch
 
 from avatarperfect_cli.body import BodyTemplate, load_body_template, load_described_template
-from avatarperfect_cli.body.skeleton import forward_kinematics, skin_points
+from avatarperfect_cli.body.skeleton import forward_kinematics, quaternion_to_matrix, skin_gaussians, skin_points
 from avatarperfect_cli.body.template_skinning import (
     FALLOFF_FLOOR,
     GRID_CELL,
     bounded_pull_shares,
     nearest_vertices,
+    reanchor_for_weights,
     template_skin_weights,
 )
 from avatarperfect_cli.errors import AvatarPerfectError
@@ -114,3 +115,64 @@ def test_bounded_pull_moves_no_point_further_than_the_bound_in_any_pose():
     assert 0 < held_back.sum() < 180  # the test exercises both cases
     torch.testing.assert_close(shift[held_back], torch.full_like(shift[held_back], max_shift), rtol=1e-6, atol=0)
     assert (shares[:20] == max_share).all() and (shares >= 0).all()
+
+
+def random_gaussians(count: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Canonical means (count, 3), quats of random norms (count, 4) and two sets of skinning weights that differ."""
+    generator = torch.Generator().manual_seed(seed)
+    means = torch.rand(count, 3, generator=generator, dtype=torch.float64) * torch.tensor([0.6, 1.6, 0.3], dtype=torch.float64)
+    quats = torch.randn(count, 4, generator=generator, dtype=torch.float64)
+    weights = torch.softmax(torch.randn(count, 24, generator=generator, dtype=torch.float64) * 2, dim=1)
+    new_weights = torch.softmax(torch.randn(count, 24, generator=generator, dtype=torch.float64) * 2, dim=1)
+    return means, quats, weights, new_weights
+
+
+def rigidly_moved(body_pose: torch.Tensor, count: int, seed: int) -> torch.Tensor:
+    """(count, 24, 4, 4) joint transforms of one body pose (24, 3) under `count` random global rotations and
+    translations: a turntable."""
+    generator = torch.Generator().manual_seed(seed)
+    rest_joints = torch.rand(24, 3, generator=generator, dtype=torch.float64) * torch.tensor([0.6, 1.6, 0.3], dtype=torch.float64)
+    poses = body_pose.expand(count, 24, 3).clone()
+    poses[:, 0] = (torch.rand(count, 3, generator=generator, dtype=torch.float64) - 0.5) * 6.0
+    return forward_kinematics(poses, rest_joints, torch.randn(count, 3, generator=generator, dtype=torch.float64))
+
+
+def test_reanchoring_keeps_every_point_and_orientation_where_a_turntable_showed_it():
+    """Poses that differ by a rigid motion of the whole body: skinned with the new weights, the re-anchored
+    Gaussians land exactly where the old ones did, turned alike, in every pose; the quats keep their norms."""
+    means, quats, weights, new_weights = random_gaussians(300, seed=8)
+    body_pose = (torch.rand(24, 3, generator=torch.Generator().manual_seed(9), dtype=torch.float64) - 0.5) * 1.2
+    poses = rigidly_moved(body_pose, 7, seed=10)
+    new_means, new_quats, shift = reanchor_for_weights(means, quats, weights, new_weights, poses, poses_per_batch=3, rotation_poses=4)
+    assert (new_means - means).norm(dim=1).median() > 0.01  # the weights differ: the canonical means must move
+    torch.testing.assert_close(new_quats.norm(dim=1), quats.norm(dim=1), rtol=1e-12, atol=0)
+    for pose in poses:
+        old_means, old_quats = skin_gaussians(means, quats, weights, pose)
+        moved_means, moved_quats = skin_gaussians(new_means, new_quats, new_weights, pose)
+        torch.testing.assert_close(moved_means, old_means, rtol=0, atol=1e-9)
+        torch.testing.assert_close(quaternion_to_matrix(moved_quats), quaternion_to_matrix(old_quats), rtol=0, atol=1e-9)
+    assert float(shift.max()) < 1e-9
+
+
+def test_reanchoring_for_the_same_weights_changes_nothing():
+    means, quats, weights, _ = random_gaussians(100, seed=11)
+    new_means, new_quats, shift = reanchor_for_weights(means, quats, weights, weights, random_poses(5, seed=12))
+    torch.testing.assert_close(new_means, means, rtol=0, atol=1e-12)
+    torch.testing.assert_close(new_quats, quats * torch.sign(quats[:, :1] * new_quats[:, :1]), rtol=0, atol=1e-12)
+    assert float(shift.max()) < 1e-12
+
+
+def test_reanchored_means_are_the_least_squares_fit_over_poses_that_bend():
+    """Poses that bend the body differently: no canonical mean keeps a point in place in all of them; the
+    re-anchored one minimises the summed squared distance (its gradient vanishes), and the reported shift is
+    the largest distance over the poses, by brute force."""
+    means, quats, weights, new_weights = random_gaussians(200, seed=13)
+    poses = random_poses(9, seed=14)
+    new_means, _, shift = reanchor_for_weights(means, quats, weights, new_weights, poses, poses_per_batch=4)
+    target = skin_points(means, weights, poses)
+    fitted = new_means.clone().requires_grad_(True)
+    ((skin_points(fitted, new_weights, poses) - target) ** 2).sum().backward()
+    assert float(fitted.grad.abs().max()) < 1e-9
+    distances = (skin_points(new_means, new_weights, poses) - target).norm(dim=-1)
+    torch.testing.assert_close(shift, distances.amax(dim=0), rtol=1e-12, atol=1e-15)
+    assert float(distances.mean()) > 1e-4  # the poses do bend: no exact fit

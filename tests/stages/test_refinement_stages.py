@@ -299,7 +299,7 @@ def test_refine_splits_the_large_barely_seen_gaussians_under_a_new_edit(workspac
     painted[20:44, 20:44] = torch.tensor([0.1, 0.7, 0.9])
     write_image(tmp_path / "edited.png", painted)
     assert invoke("apply-edit", workspace, tmp_path / "edited.png").exit_code == 0
-    assert invoke("refine", workspace, "--iterations", "5").exit_code == 0
+    assert invoke("refine", workspace, "--iterations", "5", "--template-skinning", "0").exit_code == 0  # means stay put
 
     with np.load(workspace / "visibility" / "000.npz") as data:
         visibility = torch.from_numpy(data["visibility"])
@@ -466,7 +466,7 @@ def test_refine_moves_the_skinning_to_the_template_by_the_given_share(workspace:
     expected = {"1": derived, "0.5": 0.5 * (initial.skin_weights + derived), "0": initial.skin_weights}
     for iteration, (share, weights) in enumerate(expected.items(), start=1):
         assert invoke("refine", workspace, "--revert-to", "0").exit_code == 0
-        result = invoke("refine", workspace, "--iterations", "1", "--template-skinning", share, "--template-shift-mm", "inf")
+        result = invoke("refine", workspace, "--iterations", "1", "--template-skinning", share, "--template-shift-mm", "inf", "--no-reanchor")
         assert result.exit_code == 0
         refined = Avatar.load(workspace / "avatar" / f"{iteration:03d}.ply")
         assert open_workspace(workspace).manifest["history"][-1]["template_skinning"] == float(share)
@@ -474,9 +474,9 @@ def test_refine_moves_the_skinning_to_the_template_by_the_given_share(workspace:
 
 
 def test_refine_pulls_the_skinning_no_further_than_the_shift_bound(workspace: Path):
-    """With wrong weights everywhere, the pull stops where a Gaussian would move 3 mm in some training frame:
-    the largest shift over the frames is the bound (give or take one learning step), and every Gaussian
-    moved toward the template's weights."""
+    """Without re-anchoring and with wrong weights everywhere, the pull stops where a Gaussian would move 3 mm
+    in some training frame: the largest shift over the frames is the bound (give or take one learning step),
+    and every Gaussian moved toward the template's weights."""
     from avatarperfect_cli.body import load_described_template
     from avatarperfect_cli.body.template_skinning import template_skin_weights
     from avatarperfect_cli.stages.workspace_data import load_video
@@ -486,9 +486,10 @@ def test_refine_pulls_the_skinning_no_further_than_the_shift_bound(workspace: Pa
     initial.save(workspace / "avatar" / "000.ply")
     initial = Avatar.load(workspace / "avatar" / "000.ply")
     derived = template_skin_weights(load_described_template(initial.body_model), initial.params["means"])
-    assert invoke("refine", workspace, "--iterations", "1", "--template-shift-mm", "3").exit_code == 0
+    assert invoke("refine", workspace, "--iterations", "1", "--template-shift-mm", "3", "--no-reanchor").exit_code == 0
     refined = Avatar.load(workspace / "avatar" / "001.ply")
     assert open_workspace(workspace).manifest["history"][-1]["template_shift_mm"] == 3.0
+    assert open_workspace(workspace).manifest["history"][-1]["reanchor"] is False
     video = load_video(open_workspace(workspace))
     with torch.no_grad():
         shift = torch.stack([
@@ -508,3 +509,85 @@ def test_refine_of_an_avatar_without_its_body_model_is_one_line(workspace: Path)
     assert "does not name its body model" in one_line_error(invoke("refine", workspace, "--iterations", "1"))
     assert snapshot(workspace) == before
     assert invoke("refine", workspace, "--iterations", "1", "--template-skinning", "0").exit_code == 0
+
+
+def _half_on_the_parent_joint(avatar: Avatar, template, wrong: torch.Tensor) -> None:
+    """Give the `wrong` Gaussians ((N,) bool) half their template weight on their main joint's parent: skinned to
+    the next bone as well, as a video-fitted avatar's Gaussians at the armpits are to the arm."""
+    from avatarperfect_cli.body import SMPL_PARENTS
+    from avatarperfect_cli.body.template_skinning import template_skin_weights
+
+    weights = template_skin_weights(template, avatar.params["means"])
+    parents = torch.tensor([max(parent, 0) for parent in SMPL_PARENTS])[weights[wrong].argmax(1)]
+    weights[wrong] = 0.5 * weights[wrong] + 0.5 * torch.nn.functional.one_hot(parents, 24).float()
+    avatar.set_skin_weights(weights)
+
+
+def test_reanchored_pull_keeps_a_turntable_where_it_was(trained: Path):
+    """Frames that differ by a turn of the whole body: every Gaussian takes the template's weights at its new
+    canonical mean (to the fixed point's precision) and lands where it did in every frame; the Gaussians whose
+    weights were the template's already stay put."""
+    from avatarperfect_cli.body import load_described_template
+    from avatarperfect_cli.body.template_skinning import template_skin_weights
+    from avatarperfect_cli.stages.refine import RefineSettings, pull_toward_template_skinning
+    from avatarperfect_cli.stages.workspace_data import load_video
+
+    avatar = Avatar.load(trained / "avatar" / "000.ply")
+    template = load_described_template(avatar.body_model)
+    wrong = torch.arange(len(avatar)) % 3 == 0
+    _half_on_the_parent_joint(avatar, template, wrong)
+    video = load_video(open_workspace(trained), with_images=False)
+    body_pose = video.body_pose[:1].repeat(8, 1, 1)
+    body_pose[:, 0] = torch.stack([torch.tensor([0.0, 0.8 * k, 0.0]) for k in range(8)])
+    transl = video.transl[:1].repeat(8, 1)
+    before = [avatar.pose(pose, offset) for pose, offset in zip(body_pose, transl)]
+    means = avatar.params["means"].detach().clone()
+    pull_toward_template_skinning(avatar, body_pose, transl, RefineSettings())
+    moved = (avatar.params["means"].detach() - means).norm(dim=1)
+    assert float(moved[wrong].quantile(0.75)) > 1e-3 and float(moved[~wrong].max()) < 1e-4
+    at_new_means = template_skin_weights(template, avatar.params["means"].detach())
+    assert float((avatar.skin_weights.detach() - at_new_means).abs().sum(1).quantile(0.99)) < 0.02
+    with torch.no_grad():
+        for (old_means, old_quats), pose, offset in zip(before, body_pose, transl):
+            new_means, new_quats = avatar.pose(pose, offset)
+            assert float((new_means - old_means).norm(dim=1).max()) < 1e-4
+            turn = torch.nn.functional.cosine_similarity(new_quats, old_quats, dim=1).abs()
+            assert float(turn.min()) > 1 - 1e-6
+
+
+def test_refine_reanchors_the_gaussians_it_gives_the_template_skinning(workspace: Path):
+    """Wrong weights on a third of the Gaussians, in the sample's swaying A-pose: no Gaussian moves further
+    than the 3 mm bound in a training frame (give or take one learning step), and re-anchoring brings the
+    wrong ones closer to the template's weights than the bounded pull alone does (the sway bends the arms a
+    few degrees, so there it cannot re-anchor them all)."""
+    from avatarperfect_cli.body import load_described_template
+    from avatarperfect_cli.body.template_skinning import template_skin_weights
+    from avatarperfect_cli.stages.workspace_data import load_video
+
+    initial = Avatar.load(workspace / "avatar" / "000.ply")
+    template = load_described_template(initial.body_model)
+    wrong = torch.arange(len(initial)) % 3 == 0
+    _half_on_the_parent_joint(initial, template, wrong)
+    initial.save(workspace / "avatar" / "000.ply")
+    initial = Avatar.load(workspace / "avatar" / "000.ply")
+    video = load_video(open_workspace(workspace), with_images=False)
+
+    def distance_to_template(refined: Avatar) -> float:
+        """The wrong Gaussians' L1 distance from the template's weights at their canonical means, 95th percentile
+        (most go the whole way either way; the bound holds back the tail)."""
+        at_means = template_skin_weights(template, refined.params["means"])
+        return float((refined.skin_weights.detach() - at_means)[wrong].abs().sum(1).quantile(0.95))
+
+    assert invoke("refine", workspace, "--iterations", "1").exit_code == 0
+    refined = Avatar.load(workspace / "avatar" / "001.ply")
+    assert open_workspace(workspace).manifest["history"][-1]["reanchor"] is True
+    with torch.no_grad():
+        shift = torch.stack([
+            (refined.pose(pose, transl)[0] - initial.pose(pose, transl)[0]).norm(dim=1)
+            for pose, transl in zip(video.body_pose, video.transl)
+        ]).amax(dim=0)  # fmt: skip
+    assert float(shift.max()) < 3.3e-3
+    assert invoke("refine", workspace, "--revert-to", "0").exit_code == 0
+    assert invoke("refine", workspace, "--iterations", "1", "--no-reanchor").exit_code == 0
+    bounded = Avatar.load(workspace / "avatar" / "002.ply")
+    assert distance_to_template(refined) < 0.8 * distance_to_template(bounded)
