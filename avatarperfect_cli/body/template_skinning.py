@@ -7,7 +7,7 @@ are what the body model says it should follow. On `default` seed 0 (docs/refine.
 giving every Gaussian of the initial avatar the template's weights raised held-out PSNR by 0.40 dB (the
 crotch's error fell by 41%) and cost the training frames 1.8 dB: other weights move a Gaussian in the
 video's poses too. Refine moves its canonical mean and orientation with the weights so that it stays
-where the video saw it (`reanchor_for_weights`: held out +1.17 dB, training frames -0.005 dB on that
+where the video saw it (`reanchored_means`, `reanchored_quats`: held out +1.17 dB, training frames -0.005 dB on that
 avatar, nineteenth session); where the video's poses bend the body too unlike a rigid turn for that,
 it moves the weights only as far as keeps the Gaussian near where the video put it (`bounded_pull_shares`).
 
@@ -65,45 +65,64 @@ def bounded_pull_shares(
     return (max_shift / shift.clamp_min(torch.finfo(shift.dtype).tiny)).clamp(max=max_share).float()
 
 
-def reanchor_for_weights(
-    means: torch.Tensor, quats: torch.Tensor, weights: torch.Tensor, new_weights: torch.Tensor, transforms: torch.Tensor,
-    poses_per_batch: int = 8, rotation_poses: int = 10,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Canonical means and quats that, skinned with `new_weights`, land where `means` and `quats` skinned with
-    `weights` land in the poses `transforms`: the means by least squares over the poses, the quats by the
-    mean relative rotation over `rotation_poses` of them, evenly spaced. Where the poses differ only by a
-    rigid motion of the whole body (a turntable), both are exact.
+def reanchored_means(
+    means: torch.Tensor, weights: torch.Tensor, new_weights: torch.Tensor, transforms: torch.Tensor, poses_per_batch: int = 8
+) -> torch.Tensor:
+    """(N, 3) canonical means that, skinned with `new_weights`, land where `means` skinned with `weights` land
+    in the poses `transforms`, by least squares over the poses: sum_t |B'_t m' - B_t m|^2, B_t and B'_t the
+    blended transforms of the old and new weights in pose t, one 3 x 3 solve per point (float64). Exact
+    where the poses differ only by a rigid motion of the whole body (a turntable).
 
-    means: (N, 3) canonical, metres; quats: (N, 4) w x y z, any norm (kept); weights, new_weights: (N, 24),
-    rows summing to 1; transforms: (T, 24, 4, 4) the poses' joint transforms (`forward_kinematics`).
-    Returns the new means (N, 3), the new quats (N, 4) and each point's largest distance (N,), metres, from
-    where it was over the poses."""
+    means: (N, 3) canonical, metres; weights, new_weights: (N, 24), rows summing to 1; transforms:
+    (T, 24, 4, 4) the poses' joint transforms (`forward_kinematics`)."""
     with torch.no_grad():
         means64, weights64, new_weights64 = means.double(), weights.double(), new_weights.double()
-        transforms64 = transforms.double()
         normal, rhs = means64.new_zeros(len(means), 3, 3), means64.new_zeros(len(means), 3)
-        for batch in transforms64.split(poses_per_batch):
+        for batch in transforms.double().split(poses_per_batch):
             posed = skin_points(means64, weights64, batch)  # (B, N, 3)
             blended = blend_transforms(new_weights64, batch)
             linear = blended[..., :3]
             normal += (linear.mT @ linear).sum(dim=0)
             rhs += (linear.mT @ (posed - blended[..., 3])[..., None])[..., 0].sum(dim=0)
-        new_means = torch.linalg.solve(normal, rhs)
+        return torch.linalg.solve(normal, rhs).to(means.dtype)
+
+
+def reanchored_quats(
+    means: torch.Tensor, quats: torch.Tensor, weights: torch.Tensor, new_weights: torch.Tensor, transforms: torch.Tensor,
+    poses: int = 10,
+) -> torch.Tensor:
+    """(N, 4) canonical quats (w x y z, the norms of `quats` kept) that, skinned with `new_weights`, turn like
+    `quats` skinned with `weights` in the poses `transforms`: the mean relative rotation over `poses` of
+    them, evenly spaced, projected to a rotation. Exact where the poses differ only by a rigid motion.
+    means: (N, 3) canonical, metres, where the skinning's rotations are read; the rest as `reanchored_means`."""
+    with torch.no_grad():
+        means64, weights64, new_weights64 = means.double(), weights.double(), new_weights.double()
         no_turn = means64.new_tensor([1.0, 0.0, 0.0, 0.0]).expand(len(means), 4)
         turn = means64.new_zeros(len(means), 3, 3)
-        for pose in transforms64[torch.linspace(0, len(transforms64) - 1, min(rotation_poses, len(transforms64))).round().long()]:
+        chosen = torch.linspace(0, len(transforms) - 1, min(poses, len(transforms))).round().long()
+        for pose in transforms.double()[chosen]:
             _, old_quats = skin_gaussians(means64, quats.double(), weights64, pose)
             _, new_turn = skin_gaussians(means64, no_turn, new_weights64, pose)
             turn += quaternion_to_matrix(new_turn).mT @ quaternion_to_matrix(old_quats)
         left, _, right = torch.linalg.svd(turn)
-        flip = torch.ones_like(rhs)
+        flip = torch.ones_like(means64)
         flip[:, 2] = torch.linalg.det(left @ right).sign()
-        new_quats = matrix_to_quaternion(left @ (flip[..., None] * right)) * quats.double().norm(dim=-1, keepdim=True)
-        shift = means64.new_zeros(len(means))
-        for batch in transforms64.split(poses_per_batch):
-            moved = skin_points(new_means, new_weights64, batch) - skin_points(means64, weights64, batch)
+        unit = matrix_to_quaternion(left @ (flip[..., None] * right))
+        return (unit * quats.double().norm(dim=-1, keepdim=True)).to(quats.dtype)
+
+
+def largest_shift(
+    means: torch.Tensor, weights: torch.Tensor, new_means: torch.Tensor, new_weights: torch.Tensor, transforms: torch.Tensor,
+    poses_per_batch: int = 8,
+) -> torch.Tensor:
+    """(N,) metres: each point's largest distance over the poses `transforms` between `means` skinned with
+    `weights` and `new_means` skinned with `new_weights` (float64 inside, `means`' dtype out)."""
+    with torch.no_grad():
+        shift = means.new_zeros(len(means), dtype=torch.float64)
+        for batch in transforms.double().split(poses_per_batch):
+            moved = skin_points(new_means.double(), new_weights.double(), batch) - skin_points(means.double(), weights.double(), batch)
             shift = torch.maximum(shift, moved.norm(dim=-1).amax(dim=0))
-    return new_means.to(means.dtype), new_quats.to(quats.dtype), shift.to(means.dtype)
+        return shift.to(means.dtype)
 
 
 def nearest_vertices(points: np.ndarray, vertices: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:

@@ -34,7 +34,13 @@ from rich.console import Console
 
 from avatarperfect_cli.avatar.model import Avatar
 from avatarperfect_cli.body import load_described_template
-from avatarperfect_cli.body.template_skinning import bounded_pull_shares, reanchor_for_weights, template_skin_weights
+from avatarperfect_cli.body.template_skinning import (
+    bounded_pull_shares,
+    largest_shift,
+    reanchored_means,
+    reanchored_quats,
+    template_skin_weights,
+)
 from avatarperfect_cli.devices import CPU
 from avatarperfect_cli.errors import AvatarPerfectError
 from avatarperfect_cli.io.pose_json import PoseFile
@@ -163,7 +169,7 @@ def pull_toward_template_skinning(avatar: Avatar, body_pose: torch.Tensor, trans
     """Move each Gaussian's skinning weights `settings.template_skinning` of the way to the body template's
     at its canonical mean and, unless `settings.reanchor` is off, re-anchor its canonical mean and
     orientation so that the video's frames (body_pose (T, 24, 3), transl (T, 3)) still show it where they did
-    (`reanchor_for_weights`). A Gaussian that re-anchoring would still shift by more than
+    (`reanchored_means`, `reanchored_quats`). A Gaussian that re-anchoring would still shift by more than
     `settings.template_shift` in some frame (the frames' poses differ by more than a rigid motion there), or
     every Gaussian without re-anchoring, keeps its mean and orientation and moves only as far toward the
     template's weights as shifts it that much (`bounded_pull_shares`).
@@ -183,12 +189,13 @@ def pull_toward_template_skinning(avatar: Avatar, body_pose: torch.Tensor, trans
         anchored_means = means
         for _ in range(REANCHOR_STEPS):
             target = torch.lerp(learned, template_skin_weights(template, anchored_means), settings.template_skinning)
-            anchored_means, anchored_quats, shift = reanchor_for_weights(means, quats, learned, target, transforms)
-        reanchored = shift <= settings.template_shift
+            anchored_means = reanchored_means(means, learned, target, transforms)
+        reanchored = largest_shift(means, learned, anchored_means, target, transforms) <= settings.template_shift
         weights[reanchored] = target[reanchored]
+        anchored_quats = reanchored_quats(means[reanchored], quats[reanchored], learned[reanchored], target[reanchored], transforms)
         with torch.no_grad():
             avatar.params["means"][reanchored] = anchored_means[reanchored]
-            avatar.params["quats"][reanchored] = anchored_quats[reanchored]
+            avatar.params["quats"][reanchored] = anchored_quats
     rest = ~reanchored
     if rest.any():
         target = template_skin_weights(template, means[rest])
