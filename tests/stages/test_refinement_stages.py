@@ -229,9 +229,11 @@ def test_apply_edit_refine_revert_loop(workspace: Path, tmp_path: Path):
     entry = ws.manifest["history"][-1]
     assert ws.iteration == 1 and entry["avatar"] == 1 and entry["edits"] == [1] and entry["applied_edits"] == [1]
     assert entry["deleted"] == expected_deleted > 0
-    # a second refine does not delete for the same edit again
+    assert entry["edit_step_share"] == pytest.approx(0.15)  # its edit is new: the new edits' half of 0.3
+    # a second refine does not delete for the same edit again; the edit is no longer new
     assert invoke("refine", workspace, "--iterations", "5").exit_code == 0
     assert open_workspace(workspace).manifest["history"][-1]["deleted"] == 0
+    assert open_workspace(workspace).manifest["history"][-1]["edit_step_share"] == pytest.approx(0.3)
     # revert keeps every avatar; the next refine writes 003 and re-applies the edit's deletions
     assert invoke("refine", workspace, "--revert-to", "0").exit_code == 0
     assert open_workspace(workspace).iteration == 0
@@ -420,6 +422,15 @@ def test_new_edits_share_the_given_part_of_the_edit_draws():
     assert edit_draw_weights(edits, {3, 4}, 0.8) == pytest.approx([0.1, 0.1, 0.4, 0.4])
     assert edit_draw_weights(edits, {4}, None) == [1.0] * 4  # the paper: every edit alike
     assert edit_draw_weights(edits, set(), 0.5) == [1.0] * 4 == edit_draw_weights(edits, {1, 2, 3, 4}, 0.5)
+
+
+def test_the_first_refine_gives_its_new_edits_the_share_later_refines_give_them():
+    from avatarperfect_cli.stages.refine import edit_step_share
+
+    assert edit_step_share(0.3, 0.5, 1, 0) == pytest.approx(0.15) == edit_step_share(0.3, 0.5, 2, 0)
+    assert edit_step_share(0.3, 0.5, 1, 3) == 0.3 == edit_step_share(0.3, 0.5, 0, 4)  # later refines, a refine with no new edit
+    assert edit_step_share(0.3, None, 1, 0) == 0.3  # every edit alike (the paper): the full share
+    assert edit_step_share(0.6, 0.8, 1, 0) == pytest.approx(0.48)
 
 
 def test_refine_config_continues_the_fit_gently():
