@@ -4,7 +4,7 @@
 
 The loop is chaotic after its first round: the same code with kernels that differ by float32 rounding moved
 a nine-run mean by 0.08 dB held out and single runs by up to 0.76 dB in the hidden regions (docs/study.md,
-fourteenth session). A trial is worth keeping only where the paired differences clear that band, so this
+"Reading a difference"). A trial is worth keeping only where the paired differences clear that band, so this
 prints each run's difference and how many runs went each way, not only the means.
 """
 

@@ -3,12 +3,12 @@
 An avatar's Gaussians start on the template's vertices with the template's weights, then move and learn
 their own. Learned from a monocular video's few poses, the weights fit those poses and go wrong where
 the video saw little (the armpits and crotch); the template's weights at a Gaussian's canonical position
-are what the body model says it should follow. On `default` seed 0 (docs/refine.md, eleventh session),
+are what the body model says it should follow. On `default` seed 0,
 giving every Gaussian of the initial avatar the template's weights raised held-out PSNR by 0.40 dB (the
 crotch's error fell by 41%) and cost the training frames 1.8 dB: other weights move a Gaussian in the
 video's poses too. Refine moves its canonical mean and orientation with the weights so that it stays
 where the video saw it (`reanchored_means`, `reanchored_quats`: held out +1.17 dB, training frames -0.005 dB on that
-avatar, nineteenth session); where the video's poses bend the body too unlike a rigid turn for that,
+avatar); where the video's poses bend the body too unlike a rigid turn for that,
 it moves the weights only as far as keeps the Gaussian near where the video put it (`bounded_pull_shares`).
 
 The weight at a point blends its K_NEAREST nearest template vertices with the Gaussian falloff

@@ -223,7 +223,7 @@ def edit_step_share(edit_probability: float, new_share: float | None, new_count:
 
     Drawn at the full share, the first edit alone took 150 of the 500 steps, and the first round cost the
     training frames the most: in nine study runs on re-anchored refines, -0.41 dB at worst (`default`
-    seed 1), against -0.27 dB (`tall` seed 1) at half the share (docs/study.md, nineteenth session)."""
+    seed 1), against -0.27 dB (`tall` seed 1) at half the share (docs/study.md, variants tried)."""
     if new_share is not None and new_count > 0 and old_count == 0:
         return edit_probability * new_share
     return edit_probability
