@@ -32,12 +32,12 @@ demo: install
 	  echo "== round $$round of $(ROUNDS)"; \
 	  $(BIN)/avatarperfect visibility $(DEMO)/ws && \
 	  $(BIN)/avatarperfect suggest $(DEMO)/ws && \
-	  $(BIN)/avatarperfect simulate-user $(DEMO)/ws -o $(DEMO)/painted.png && \
+	  $(BIN)/avatarperfect simulate-user $(DEMO)/ws -o $(DEMO)/painted.png --force && \
 	  $(BIN)/avatarperfect apply-edit $(DEMO)/ws $(DEMO)/painted.png && \
 	  $(BIN)/avatarperfect refine $(DEMO)/ws || exit 1; \
 	done
-	$(BIN)/avatarperfect report $(DEMO)/ws --test $(DEMO)/sample/test -o $(DEMO)/report
-	$(BIN)/avatarperfect render $(DEMO)/ws --motion examples/motions/walk.npz -o $(DEMO)/walk.mp4
+	$(BIN)/avatarperfect report $(DEMO)/ws --test $(DEMO)/sample/test -o $(DEMO)/report --force
+	$(BIN)/avatarperfect render $(DEMO)/ws --motion examples/motions/walk.npz -o $(DEMO)/walk.mp4 --force
 
 bench: install
 	$(BIN)/python benchmarks/rasterizer.py

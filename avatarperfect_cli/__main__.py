@@ -12,6 +12,8 @@ import sys
 from pathlib import Path
 
 # commands that take the workspace lock; any of their positional arguments may name the workspace
+# apply-edit --list reads the workspace without needing its lock
+READ_ONLY_OPTION = "--list"
 LOCKING_COMMANDS = frozenset({"train-initial", "visibility", "suggest", "apply-edit", "refine", "evaluate", "simulate-user", "report"})
 
 
@@ -33,7 +35,7 @@ def main() -> None:
 
 def refuse_busy_workspace(argv: list[str]) -> None:
     """Exit with status 2 and one line when `argv` runs a locking command on a busy workspace."""
-    if not argv or argv[0] not in LOCKING_COMMANDS:
+    if not argv or argv[0] not in LOCKING_COMMANDS or READ_ONLY_OPTION in argv:
         return
     from avatarperfect_cli.errors import AvatarPerfectError
     from avatarperfect_cli.io.workspace import refuse_if_busy

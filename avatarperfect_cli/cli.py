@@ -43,18 +43,36 @@ def _is_interrupt(error: BaseException) -> bool:
     return False
 
 
+_options = {"verbose": False}  # the options before the command, set by `_global_options` on every invocation
+
+
+@app.callback()
+def _global_options(
+    verbose: bool = typer.Option(
+        False, "--verbose", help="Also show the libraries' own log lines and warnings (FFmpeg, TFLite, absl, Pillow) on stderr."
+    ),
+) -> None:
+    """Repair 3D Gaussian Splatting human avatars by painting 2D images."""
+    _options["verbose"] = verbose
+
+
 def _one_line_errors(command: F) -> F:
     """Print expected failures (AvatarPerfectError) as one line on stderr and exit with status 2;
-    Ctrl-C and SIGTERM end with "interrupted" and status 130, after the stage has cleaned up."""
+    Ctrl-C and SIGTERM end with "interrupted" and status 130, after the stage has cleaned up.
+    The libraries' own output stays off stderr unless --verbose (see `library_output`)."""
 
     @functools.wraps(command)
     def wrapper(*args: object, **kwargs: object) -> object:
+        import contextlib
+
         from avatarperfect_cli import interrupts
         from avatarperfect_cli.errors import AvatarPerfectError
+        from avatarperfect_cli.library_output import libraries_quiet
 
         interrupts.install((signal.SIGTERM,))  # the entry point routes SIGINT too
         try:
-            return command(*args, **kwargs)
+            with contextlib.nullcontext() if _options["verbose"] else libraries_quiet():
+                return command(*args, **kwargs)
         except AvatarPerfectError as error:
             typer.echo(f"error: {error}", err=True)
             raise typer.Exit(2) from None
@@ -114,7 +132,10 @@ def make_sample(
 @_one_line_errors
 def prepare(
     video: Path = typer.Argument(..., help="A video of one person (any format OpenCV reads, e.g. .mp4)."),
-    out_dir: Path = typer.Argument(..., help="Folder to write in the People-Snapshot layout (new, empty, or a previous one)."),
+    out_dir: Path = typer.Argument(
+        ..., help="Folder the command writes, in the People-Snapshot layout: new, empty, or a previous one (replaced); a "
+        "folder with other files is refused before any frame is decoded.",
+    ),  # fmt: skip
     every: int = typer.Option(1, help="Keep every N-th frame."),
     fov: float = typer.Option(60.0, help="The camera's field of view across the longer image side, degrees (assumed)."),
 ) -> None:
@@ -204,8 +225,9 @@ def render(
     source: Path = typer.Argument(..., help="A workspace, an avatar PLY, or any 3DGS PLY (with --camera)."),
     output: Path = typer.Option(
         ..., "--output", "-o",
-        help="PNG image (and X_alpha.png), .mp4 video, or a folder for frame_NNNN.png: a new or empty folder, or a "
-        "previous frames output (a folder with other files needs --force).",
+        help="What the command writes: a PNG image (and X_alpha.png beside it), an .mp4 video, or a folder for "
+        "frame_NNNN.png: a new or empty folder, or a previous frames output. Existing files, or a folder with other "
+        "files, need --force.",
     ),  # fmt: skip
     camera: Optional[Path] = typer.Option(
         None, "--camera", "-c",
@@ -227,7 +249,8 @@ def render(
     fps: float = typer.Option(30.0, help="Frame rate of videos."),
     device: str = typer.Option("auto", help=DEVICE_HELP),
     force: bool = typer.Option(
-        False, "--force", help="Write frames into a folder that holds other files (they are kept; its frame_NNNN.png are replaced)."
+        False, "--force", help="Replace an existing image or video, or write frames into a folder that holds other files "
+        "(they are kept; its frame_NNNN.png are replaced)."
     ),
 ) -> None:
     """Render static Gaussians, or a skinned avatar in a pose, a motion or a turntable."""
@@ -236,7 +259,7 @@ def render(
 
     torch_device = resolve_device(device)
     if camera is not None and pose is None and motion is None and turntable == 0 and up is None:
-        stage.render_ply(source, camera, output, None, background, torch_device)
+        stage.render_ply(source, camera, output, None, background, torch_device, force=force)
     else:
         stage.render_avatar_views(
             source, output, pose, motion, turntable, camera, iteration, background, fps, force=force, up=up, device=torch_device
@@ -304,8 +327,8 @@ def apply_edit(
     fill: Optional[str] = typer.Option(None, "--fill", help="Fill --region: a colour (white, #rrggbb, R,G,B), telea, ns or diffusion."),
     model_dir: Optional[Path] = typer.Option(None, "--model-dir", help="Your local Stable-Diffusion inpainting pipeline, for --fill diffusion."),
     prompt: str = typer.Option("", "--prompt", help="Text prompt for --fill diffusion."),
-    erase: Optional[str] = typer.Option(None, "--erase", help="SuperSplat baseline: delete Gaussians in --region: center or splat."),
-    list_edits: bool = typer.Option(False, "--list", help="List the registered edits."),
+    erase: Optional[str] = typer.Option(None, "--erase", help="SuperSplat baseline: delete Gaussians in --region: center or splat (writes the next avatar iteration)."),
+    list_edits: bool = typer.Option(False, "--list", help="List the registered edits (read-only: works while another stage runs)."),
     remove: Optional[int] = typer.Option(None, "--remove", help="Withdraw edit N."),
 ) -> None:
     """Register a painted image as an edit (white = background, other colours = colour targets)."""
@@ -389,13 +412,17 @@ def simulate_user(
     priority: str = typer.Option(
         "error", help="Which wrong regions first: error (most summed difference) or area (most pixels)."
     ),
-    output: Optional[Path] = typer.Option(None, "--output", "-o", help="Edited PNG [default: the suggestion's simulated_edit.png]."),
+    output: Optional[Path] = typer.Option(
+        None, "--output", "-o", help="The painted .png outside the workspace; its statistics go beside it (same name, "
+        ".json). These two files are what the command writes [default: the suggestion's simulated_edit.png and .json].",
+    ),  # fmt: skip
+    force: bool = typer.Option(False, "--force", help="Replace the -o image and its .json if they exist."),
 ) -> None:
     """Paint the latest suggestion as a careful person would (synthetic subjects only), for apply-edit."""
     from avatarperfect_cli.sample.simulated_user import UserConfig
     from avatarperfect_cli.stages.simulate_user import simulate_user as run
 
-    run(workspace, subject, UserConfig(style=style, budget=budget, priority=priority), output)
+    run(workspace, subject, UserConfig(style=style, budget=budget, priority=priority), output, force=force)
 
 
 @app.command("report")
@@ -403,12 +430,16 @@ def simulate_user(
 def report(
     workspace: Path = typer.Argument(..., help="Workspace folder."),
     test: Path = typer.Option(..., "--test", help="Held-out video in the People-Snapshot layout."),
-    output: Path = typer.Option(..., "--output", "-o", help="Folder for metrics.png, suggestions.png, comparison.mp4."),
+    output: Path = typer.Option(
+        ..., "--output", "-o", help="Folder (new or existing) for metrics.png, suggestions.png and comparison.mp4, the "
+        "files this command writes (it also adds the missing evaluations to the workspace's eval/).",
+    ),  # fmt: skip
+    force: bool = typer.Option(False, "--force", help="Replace metrics.png, suggestions.png and comparison.mp4 already in the folder."),
 ) -> None:
     """Pictures of the refinement loop: held-out metrics per iteration, the edits, a before/after video."""
     from avatarperfect_cli.stages.report import report as run
 
-    run(workspace, test, output)
+    run(workspace, test, output, force=force)
 
 
 def _required(value: Optional[Path], message: str) -> Path:

@@ -240,7 +240,7 @@ def main() -> None:
     if "refine" not in skip:
         edited = copy_workspace(base, scratch / "edited")
         suggest(edited, SuggestSettings(device=first), progress=False)
-        simulate_user(edited, output=scratch / "painted.png", progress=False)
+        simulate_user(edited, output=scratch / "painted.png", progress=False, force=True)
         apply_edit(edited, scratch / "painted.png", progress=False)
         visibility(edited, progress=False, device=first)
         settings = {d: RefineSettings(iterations=args.refine_iterations, device=d) for d in devices}

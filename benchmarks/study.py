@@ -199,7 +199,7 @@ def run_condition(name: str, initial: Path, out: Path, sample: Path, subject: Sy
             search = SuggestConfig(body_pose=mode, exposure_poses=exposure_poses, seed=round_seed)
             suggest(ws, SuggestSettings(search), progress=False)
             user_start = time.perf_counter()
-            painting = simulate_user(ws, sample, UserConfig(style=style), output=scratch / "painted.png", progress=False)
+            painting = simulate_user(ws, sample, UserConfig(style=style), output=scratch / "painted.png", progress=False, force=True)
             if painting.stats.painted_pixels:  # nothing wrong in view: no edit, the round's refine still runs (the paper, §8)
                 apply_edit(ws, scratch / "painted.png", progress=False)
             user_seconds = time.perf_counter() - user_start

@@ -147,7 +147,7 @@ def main() -> None:
     painted = scratch / "painted.png"
     for round_index in range(5):
         folder = suggest(ws, progress=False)
-        simulate_user(ws, args.sample, output=painted, progress=False)
+        simulate_user(ws, args.sample, output=painted, progress=False, force=True)
         apply_edit(ws, painted, progress=False)
         pose = read_pose(folder / "pose.json")
         summary = json.loads((folder / "suggestion.json").read_text())

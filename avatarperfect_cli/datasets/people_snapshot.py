@@ -285,8 +285,7 @@ def write_people_snapshot(
         raise ValueError(f"images must be uint8 and masks bool, got {images.dtype} and {masks.dtype}")
 
     root = Path(root)
-    if root.exists() and not _is_replaceable(root):
-        raise InputFileError(root, "exists and is not a People-Snapshot dataset; refusing to replace it")
+    check_dataset_output(root)
     staging = staging_dir(root)
     try:
         (staging / "images").mkdir()
@@ -606,9 +605,12 @@ def _as_numpy(array: np.ndarray | torch.Tensor) -> np.ndarray:
     return array.detach().cpu().numpy() if isinstance(array, torch.Tensor) else np.asarray(array)
 
 
-def _is_replaceable(root: Path) -> bool:
-    """True for a folder the writer may replace: an empty folder or a previous dataset."""
-    return root.is_dir() and ((root / "cameras.npz").is_file() or not any(root.iterdir()))
+def check_dataset_output(root: Path) -> None:
+    """Refuse (one line) a `root` that `write_people_snapshot` may not replace: anything but a missing path, an
+    empty folder or a previous dataset (a folder with cameras.npz)."""
+    replaceable = root.is_dir() and ((root / "cameras.npz").is_file() or not any(root.iterdir()))
+    if root.exists() and not replaceable:
+        raise InputFileError(root, "exists and is not a People-Snapshot dataset; refusing to replace it")
 
 
 def _move_into_place(staging: Path, root: Path) -> None:

@@ -26,6 +26,17 @@ def _sixteen_bit_gray(image: Image.Image, mode: ImageMode) -> np.ndarray:
     return np.concatenate(channels, axis=-1)
 
 
+def image_size(path: Path | str) -> tuple[int, int]:
+    """(width, height) of an image file, from its header (nothing is decoded)."""
+    path = Path(path)
+    require_file(path)
+    try:
+        with Image.open(path) as image:
+            return image.size
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as error:
+        raise InputFileError(path, f"not a readable image ({error})") from None
+
+
 def read_image(path: Path | str, mode: ImageMode | None = None) -> torch.Tensor:
     """(H, W, C) float32 in [0, 1]. mode None keeps alpha when the file has it (C = 4) and gives RGB otherwise
     (C = 3); "RGB" drops alpha, "RGBA" adds an opaque one, "L" gives luminance (C = 1)."""

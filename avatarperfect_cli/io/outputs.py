@@ -31,6 +31,25 @@ def check_writable_output(path: Path) -> None:
     _check_creatable_under(path, path.parent)
 
 
+def check_new_output(path: Path, suffixes: tuple[str, ...], force: bool = False) -> None:
+    """Raise InputFileError unless a file with one of `suffixes` (".png", ...) can be written at `path`, and, without
+    `force`, nothing is there yet: a command never replaces a file it was not asked to."""
+    path = Path(path)
+    if path.suffix.lower() not in suffixes:
+        raise InputFileError(path, f"unknown output type '{path.suffix}'; give a {' or '.join(suffixes)} file name")
+    check_writable_output(path)
+    if path.exists() and not force:
+        raise InputFileError(path, "exists; pass --force to replace it")
+
+
+def check_output_folder(folder: Path, names: tuple[str, ...], force: bool = False) -> None:
+    """Raise InputFileError unless the files `names` can be written in `folder` (existing or creatable) and, without
+    `force`, none of them is there yet (other files in the folder are left alone)."""
+    check_writable_folder(folder)
+    for name in names:
+        check_new_output(Path(folder) / name, (Path(name).suffix,), force)
+
+
 def check_writable_folder(path: Path) -> None:
     """Raise InputFileError unless files can be written in folder `path` (existing, or creatable)."""
     path = Path(path)

@@ -19,7 +19,7 @@ import fcntl
 import json
 import os
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -99,7 +99,7 @@ class Workspace:
 
 
 def open_workspace(root: Path) -> Workspace:
-    """Read an existing workspace; a one-line error if `root` is not one."""
+    """Read an existing workspace; a one-line error if `root` is not one or its manifest fails `check_manifest`."""
     path = root / MANIFEST
     if not path.is_file():
         raise AvatarPerfectError(f"{root}: not a workspace (no {MANIFEST}); run 'avatarperfect train-initial' first")
@@ -109,11 +109,62 @@ def open_workspace(root: Path) -> Workspace:
         raise InputFileError(path, f"unreadable manifest ({error})") from None
     if not isinstance(manifest, dict) or manifest.get("format") != WORKSPACE_FORMAT:
         raise InputFileError(path, f"not an avatarperfect manifest (format must be '{WORKSPACE_FORMAT}')")
-    if manifest.get("version", 0) > WORKSPACE_VERSION:
+    if _is_count(manifest.get("version", 0)) and manifest.get("version", 0) > WORKSPACE_VERSION:
         raise InputFileError(path, f"manifest version {manifest['version']} is newer than this avatarperfect reads")
     if not isinstance(manifest.get("iteration"), int):
         raise InputFileError(path, "manifest has no integer 'iteration'")
+    check_manifest(manifest, path)
     return Workspace(root, manifest)
+
+
+# The manifest's keys and history entries' keys -> (the JSON types allowed, how the error names them). Keys may be
+# missing (older workspaces); the stages that need one say so. Deeper values (camera, pose) are checked where read.
+_OBJECT, _TEXT, _COUNT = ((dict,), "an object"), ((str,), "a string"), (("count",), "a non-negative integer")
+_MANIFEST_TYPES: dict[str, tuple[tuple, str]] = {
+    "version": _COUNT, "iteration": _COUNT, "dataset": _TEXT, "frames": ((dict, None), "an object or null"),
+    "poses": ((str, None), "a string or null"), "transl_offset": (("numbers",), "a list of numbers"),
+    "downscale": _COUNT, "camera": _OBJECT, "body_model": _OBJECT, "reference_pose": _OBJECT,
+    "refined_poses": ((str, None), "a string or null"), "history": ((list,), "a list of objects"),
+}  # fmt: skip
+_HISTORY_TYPES: dict[str, tuple[tuple, str]] = {
+    "stage": _TEXT, "avatar": _COUNT, "from": _COUNT, "edits": (("counts",), "a list of non-negative integers"),
+    "applied_edits": (("counts",), "a list of non-negative integers"),
+}  # fmt: skip
+
+
+def check_manifest(manifest: dict[str, Any], path: Path) -> None:
+    """Raise InputFileError naming the manifest and the field whose value has the wrong type."""
+    for key, expected in _MANIFEST_TYPES.items():
+        if key in manifest:
+            _check_type(manifest[key], expected, key, path)
+    for index, entry in enumerate(manifest.get("history", [])):
+        if not isinstance(entry, dict):
+            raise InputFileError(path, f"'history[{index}]' must be an object, got {entry!r:.40}")
+        for key, expected in _HISTORY_TYPES.items():
+            if key in entry:
+                _check_type(entry[key], expected, f"history[{index}].{key}", path)
+
+
+def _check_type(value: Any, expected: tuple[tuple, str], field: str, path: Path) -> None:
+    kinds, description = expected
+    if not any(_is_kind(value, kind) for kind in kinds):
+        raise InputFileError(path, f"'{field}' must be {description}, got {value!r:.40}")
+
+
+def _is_kind(value: Any, kind: Any) -> bool:
+    if kind is None:
+        return value is None
+    if kind == "count":
+        return _is_count(value)
+    if kind == "counts":
+        return isinstance(value, list) and all(_is_count(item) for item in value)
+    if kind == "numbers":
+        return isinstance(value, list) and all(isinstance(item, (int, float)) and not isinstance(item, bool) for item in value)
+    return isinstance(value, kind) and not isinstance(value, bool)
+
+
+def _is_count(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
 
 
 def check_new_workspace(root: Path, force: bool) -> None:
@@ -153,21 +204,76 @@ def workspace_lock(root: Path) -> Iterator[None]:
     An OS file lock (flock) on a hidden sibling file: the kernel releases it when its process ends,
     however it ends, so a killed stage never leaves a stale lock. The file is removed on release; a
     locker that finds its file was removed meanwhile tries again. On entry, leftovers of a killed stage
-    are cleaned up.
+    are cleaned up. Folders created for the lock file are removed again when no workspace appeared.
     """
     interrupts.check()
     path = lock_path(root)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    descriptor = _acquire(path, root)
+    created = _make_parents(path.parent)
     try:
-        os.pwrite(descriptor, f"{os.getpid()}\n".encode(), 0)
-        recover_folder(Path(os.path.abspath(root)))
-        if root.is_dir():
-            remove_temporaries(root)
-        yield
+        descriptor = _acquire(path, root)
+        try:
+            os.pwrite(descriptor, f"{os.getpid()}\n".encode(), 0)
+            recover_folder(Path(os.path.abspath(root)))
+            if root.is_dir():
+                remove_temporaries(root)
+            yield
+        finally:
+            path.unlink(missing_ok=True)
+            os.close(descriptor)  # releases the lock
     finally:
-        path.unlink(missing_ok=True)
-        os.close(descriptor)  # releases the lock
+        if not root.exists():
+            for folder in reversed(created):
+                _remove_if_empty(folder)
+
+
+@contextmanager
+def reading_workspace(root: Path) -> Iterator[Workspace]:
+    """Open the workspace at `root` for a read-only command, which needs no lock: when the lock is free (and can
+    be created), it is held for the block and a killed stage's leftovers are cleaned up as `locked_workspace`
+    does; when another stage holds it, or its folder is read-only, the workspace is read as it is."""
+    root = Path(root)
+    open_workspace(root)  # a one-line refusal before anything is created
+    with ExitStack() as lock:
+        locked = False
+        try:
+            lock.enter_context(workspace_lock(root))
+            locked = True
+        except LockUnavailable:
+            pass
+        workspace = open_workspace(root)
+        if locked:
+            workspace.remove_uncommitted()
+        yield workspace
+
+
+class LockUnavailable(AvatarPerfectError):
+    """The workspace's lock is held by another stage or cannot be created (the message says which)."""
+
+
+def _make_parents(folder: Path) -> list[Path]:
+    """Create `folder` and its missing ancestors; returns the ones created, outermost first (a one-line error
+    when they cannot be created)."""
+    missing = []
+    while not folder.exists() and folder != folder.parent:
+        missing.append(folder)
+        folder = folder.parent
+    created = []
+    try:
+        for folder in reversed(missing):
+            folder.mkdir()
+            created.append(folder)
+    except OSError as error:
+        for done in reversed(created):
+            _remove_if_empty(done)
+        raise LockUnavailable(f"{folder}: cannot create the folder for the workspace's lock: {error.strerror or error}") from None
+    return created
+
+
+def _remove_if_empty(folder: Path) -> None:
+    try:
+        folder.rmdir()
+    except OSError:
+        pass  # not empty (something else appeared there) or already gone
 
 
 def refuse_if_busy(root: Path) -> None:
@@ -190,13 +296,18 @@ def _holder(descriptor: int) -> str:
 
 
 def _busy(root: Path, holder: str) -> AvatarPerfectError:
-    return AvatarPerfectError(f"{root}: another avatarperfect stage (pid {holder}) is using this workspace; wait for it to finish")
+    return LockUnavailable(f"{root}: another avatarperfect stage (pid {holder}) is using this workspace; wait for it to finish")
 
 
 def _acquire(path: Path, root: Path) -> int:
     """A descriptor of `path` holding its exclusive lock (see `workspace_lock`)."""
     while True:
-        descriptor = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            descriptor = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as error:
+            raise LockUnavailable(
+                f"{root}: cannot create the workspace's lock file {path}: {error.strerror or error} (its folder must be writable)"
+            ) from None
         try:
             fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

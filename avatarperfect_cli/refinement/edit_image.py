@@ -40,7 +40,7 @@ import torch
 from PIL import Image, ImageCms, JpegImagePlugin
 
 from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
-from avatarperfect_cli.io.images import read_image
+from avatarperfect_cli.io.images import image_size, read_image
 from avatarperfect_cli.io.paths import require_file
 
 DEFAULT_TOLERANCE = 5.5 / 255.0  # ±3 levels of noise (+0.5 against a float render) is no edit, ±6 levels is
@@ -100,6 +100,7 @@ def read_painted_image(path: Path | str) -> PaintedImage:
     require_file(path)
     try:
         with Image.open(path) as image:
+            _refuse_animation(image, path)
             icc_profile = image.info.get("icc_profile")
             if icc_profile and not _is_srgb(icc_profile):
                 image.load()
@@ -116,6 +117,16 @@ def read_painted_image(path: Path | str) -> PaintedImage:
     alpha = pixels[..., 3:]
     rgb = (pixels[..., :3] * alpha + (1.0 - alpha)).contiguous()
     return PaintedImage(rgb=rgb, transparent=alpha[..., 0] < 0.5, lossy=lossy, jpeg=jpeg)
+
+
+def _refuse_animation(image: Image.Image, path: Path) -> None:
+    """A GIF keeps at most 256 colours (its quantisation changes pixels nobody painted) and an animation holds
+    several images: both are refused in one line."""
+    if image.format == "GIF":
+        raise InputFileError(path, "a GIF keeps at most 256 colours, which changes pixels you did not paint; save a PNG")
+    frames = getattr(image, "n_frames", 1)
+    if frames > 1:
+        raise InputFileError(path, f"an animation of {frames} frames; save the painted image as a single PNG")
 
 
 def _is_srgb(icc_profile: bytes) -> bool:
@@ -282,11 +293,10 @@ def read_user_mask(path: Path | str, shape: tuple[int, int]) -> torch.Tensor:
     """(H, W) bool from the user's --mask image of any mode: in where the luminance, composited on black (so
     transparent pixels are out), is at least 50% grey. shape: (H, W) the edited image's, which the mask must match."""
     path = Path(path)
-    pixels = read_image(path, "RGBA")
     height, width = shape
-    if tuple(pixels.shape[:2]) != (height, width):
-        raise InputFileError(
-            path, f"the mask is {pixels.shape[1]}x{pixels.shape[0]} pixels, the edited image {width}x{height}"
-        )
+    mask_width, mask_height = image_size(path)  # checked before decoding
+    if (mask_height, mask_width) != (height, width):
+        raise InputFileError(path, f"the mask is {mask_width}x{mask_height} pixels, the edited image {width}x{height}")
+    pixels = read_image(path, "RGBA")
     luminance = pixels[..., :3] @ torch.tensor([0.299, 0.587, 0.114])  # ITU-R 601, as Pillow's "L"
     return luminance * pixels[..., 3] >= 0.5

@@ -55,6 +55,8 @@ def parse_colour(text: str) -> tuple[float, float, float]:
         raise AvatarPerfectError(
             f"'{text}' is not a colour (use a name such as white, #rrggbb, or R,G,B in 0..255 or 0..1)"
         ) from None
+    if not all(0 <= value <= 255 for value in (red, green, blue)):  # Pillow passes rgb(300,0,0) through
+        raise AvatarPerfectError(f"colour '{text}' is out of range: it gives ({red}, {green}, {blue}), components are 0..255")
     return (red / 255.0, green / 255.0, blue / 255.0)
 
 

@@ -23,10 +23,11 @@ from avatarperfect_cli.avatar.model import Avatar
 from avatarperfect_cli.avatar.rendering import render_avatar
 from avatarperfect_cli.errors import AvatarPerfectError
 from avatarperfect_cli.io import PoseFile, atomic_write_text, read_image, read_pose, write_image, write_pose
+from avatarperfect_cli.io.images import image_size
 from avatarperfect_cli.io.atomic import atomic_folder
-from avatarperfect_cli.io.workspace import Workspace, locked_workspace
+from avatarperfect_cli.io.workspace import Workspace, locked_workspace, reading_workspace
 from avatarperfect_cli.refinement.edit_image import EditMasks, derive_edit_masks, read_painted_image, read_user_mask
-from avatarperfect_cli.refinement.erase import delete_gaussians, select_in_region
+from avatarperfect_cli.refinement.erase import ERASE_MODES, delete_gaussians, select_in_region
 from avatarperfect_cli.refinement.inpaint import OPENCV_METHODS, fill_diffusion, fill_flat, fill_opencv, parse_colour
 from avatarperfect_cli.stages.workspace_data import EDITS, applied_edits, latest_suggestion, registered_edits
 
@@ -83,13 +84,14 @@ def apply_edit(
     console = Console(stderr=True, quiet=not progress)
     with locked_workspace(workspace_root) as workspace:
         source = edit_source(workspace, pose)
-        painted = read_painted_image(edited)
         height, width = source.image.shape[:2]
-        if tuple(painted.rgb.shape[:2]) != (height, width):
+        painted_width, painted_height = image_size(edited)  # from the header: a wrong size is not decoded
+        if (painted_height, painted_width) != (height, width):
             raise AvatarPerfectError(
-                f"{edited}: the image is {painted.rgb.shape[1]}x{painted.rgb.shape[0]} pixels but {source.origin} is "
+                f"{edited}: the image is {painted_width}x{painted_height} pixels but {source.origin} is "
                 f"{width}x{height}; paint on the suggested image at its own size"
             )
+        painted = read_painted_image(edited)
         if painted.lossy:
             console.print(f"[yellow]warning[/]: {edited} is lossy (JPEG); compression noise is ignored, but save PNGs")
         user_mask = None if mask is None else read_user_mask(mask, (height, width))
@@ -107,8 +109,8 @@ def apply_edit(
 
 
 def list_edits(workspace_root: Path) -> list[dict]:
-    """The registered edits' records (printed as a table); read-only."""
-    with locked_workspace(workspace_root) as workspace:
+    """The registered edits' records (printed as a table); read-only: no lock needed (see `reading_workspace`)."""
+    with reading_workspace(workspace_root) as workspace:
         edits = registered_edits(workspace)
         applied = set()
         for entry in workspace.manifest.get("history", []):
@@ -142,6 +144,8 @@ def erase_region(workspace_root: Path, region_path: Path, mode: str, pose: Path 
     """SuperSplat's erase tools: delete the Gaussians selected by `region_path` (a mask PNG over the latest
     suggestion or `pose`'s view) with `mode` "center" or "splat", and write the next avatar iteration
     without training. Returns its path."""
+    if mode not in ERASE_MODES:
+        raise AvatarPerfectError(f"--erase {mode}: give {' or '.join(ERASE_MODES)}")
     console = Console(stderr=True, quiet=not progress)
     with locked_workspace(workspace_root) as workspace:
         start = time.perf_counter()

@@ -32,6 +32,7 @@ from rich.progress import track
 from avatarperfect_cli.body import load_body_template
 from avatarperfect_cli.body.landmark_fit import JointTargets, LandmarkFitConfig, fit_poses
 from avatarperfect_cli.datasets import write_people_snapshot
+from avatarperfect_cli.datasets.people_snapshot import check_dataset_output
 from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
 from avatarperfect_cli.io.paths import require_file
 from avatarperfect_cli.render import Camera
@@ -87,12 +88,15 @@ class Landmarks:
 
 
 def prepare(video: Path, out: Path, settings: PrepareSettings | None = None, progress: bool = True) -> Path:
-    """Write the People-Snapshot folder `out` for the person in `video` (see the module doc); returns `out`."""
+    """Write the People-Snapshot folder `out` for the person in `video` (see the module doc); returns `out`.
+    The folder and the video are checked before any frame is decoded."""
     settings = settings or PrepareSettings()
     if settings.every < 1 or not (0.0 < settings.fov_degrees < 180.0):
         raise AvatarPerfectError(
             f"--every must be at least 1 and --fov in (0, 180) degrees, got {settings.every} and {settings.fov_degrees}"
         )
+    check_dataset_output(Path(out))
+    check_video(video)
     pose_solution = _pose_solution()
     console = Console(stderr=True, quiet=not progress)
     frames, frame_numbers = read_video_frames(video, settings.every)
@@ -118,6 +122,19 @@ def prepare(video: Path, out: Path, settings: PrepareSettings | None = None, pro
     write_people_snapshot(out, images, landmarks.masks, body_pose, transl, camera, subject=subject)
     console.print(f"wrote {out} ({len(images)} frames of {width}x{height})")
     return Path(out)
+
+
+def check_video(video: Path) -> None:
+    """Refuse (one line) a file OpenCV cannot open as a video or whose first frame it cannot decode."""
+    require_file(video)
+    capture = cv2.VideoCapture(str(video))
+    try:
+        if not capture.isOpened():
+            raise InputFileError(video, "OpenCV cannot read it as a video")
+        if not capture.read()[0]:
+            raise InputFileError(video, "holds no frames OpenCV can decode")
+    finally:
+        capture.release()
 
 
 def read_video_frames(video: Path, every: int) -> tuple[list[np.ndarray], list[int]]:
@@ -180,7 +197,7 @@ def detect_landmarks(pose_solution: Any, frames: list[np.ndarray], progress: boo
     image, visibility, world, masks, found = [], [], [], [], []
     console = Console(stderr=True)
     with pose_solution.Pose(static_image_mode=False, model_complexity=1, enable_segmentation=True) as detector:
-        for frame in track(frames, "finding the person", console=console, disable=not progress):
+        for frame in track(frames, "finding the person", console=console, disable=not progress, transient=True):
             result = detector.process(np.ascontiguousarray(frame))
             found.append(result.pose_landmarks is not None and result.segmentation_mask is not None)
             if not found[-1]:

@@ -34,7 +34,7 @@ from avatarperfect_cli.gaussians import Gaussians
 from avatarperfect_cli.io import atomic_path, read_camera, read_gaussians, read_pose, write_image
 from avatarperfect_cli.io.atomic import recover_folder, staging_dir
 from avatarperfect_cli.io.motion import UP_AXES, detect_up_axis, place_motion, read_motion
-from avatarperfect_cli.io.outputs import check_writable_folder, check_writable_output, write_image_pair
+from avatarperfect_cli.io.outputs import check_new_output, check_writable_folder, write_image_pair
 from avatarperfect_cli.io.pose_json import NUM_JOINTS
 from avatarperfect_cli.io.workspace import MANIFEST, open_workspace
 from avatarperfect_cli.render import Camera, RenderOutput, rasterization
@@ -71,11 +71,6 @@ def render_gaussians(
         )  # fmt: skip
 
 
-def _require_png(output: Path) -> None:
-    if output.suffix.lower() != ".png":
-        raise AvatarPerfectError(f"{output}: the output must be a .png file")
-
-
 def default_alpha_path(output: Path) -> Path:
     return output.with_name(f"{output.stem}_alpha.png")
 
@@ -97,17 +92,17 @@ def render_ply(
     alpha_output: Path | None = None,
     background: str = "white",
     device: torch.device = CPU,
+    force: bool = False,
 ) -> None:
     """Render a Gaussian PLY with a camera JSON on `device` to an RGB PNG and an alpha PNG (written together,
     atomically).
 
-    Both outputs are checked before any work; a warning goes to stderr when the camera sees none of the
-    Gaussians.
+    Both outputs are checked before any work (existing files are replaced only with `force`); a warning goes to
+    stderr when the camera sees none of the Gaussians.
     """
-    _require_png(output)
     alpha_output = alpha_output or default_alpha_path(output)
-    check_writable_output(output)
-    check_writable_output(alpha_output)
+    check_new_output(output, (".png",), force)
+    check_new_output(alpha_output, (".png",), force)
     background_color = parse_background(background)
     gaussians = read_gaussians(source)
     camera = read_camera(camera_path)
@@ -155,7 +150,7 @@ def check_video_output(output: Path, force: bool = False) -> None:
     folder only with `force`).
     """
     if output.suffix.lower() == ".mp4":
-        check_writable_output(output)
+        check_new_output(output, (".mp4",), force)
         return
     if output.suffix and not output.is_dir():
         raise AvatarPerfectError(f"{output}: give an .mp4 file or a folder for the frames")
@@ -281,9 +276,8 @@ def render_avatar_views(
     if up is not None and (motion is None or up not in UP_AXES):
         raise AvatarPerfectError(f"--up {up}: give y, -y or z, with --motion")
     if pose is not None:
-        _require_png(output)
-        check_writable_output(output)
-        check_writable_output(default_alpha_path(output))
+        check_new_output(output, (".png",), force)
+        check_new_output(default_alpha_path(output), (".png",), force)
     else:
         if motion is None and turntable == 0:
             raise AvatarPerfectError("a skinned avatar needs one of --pose, --motion or --turntable")

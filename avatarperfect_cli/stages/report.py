@@ -1,9 +1,10 @@
 """The `report` stage: what the refinement loop did, as pictures a person reads.
 
-Writes into an output folder (never into the workspace):
+Writes into an output folder (never into the workspace, but for the evaluations it adds there):
     metrics.png      held-out PSNR and IoU of every avatar iteration (evaluating the missing ones)
     suggestions.png  one row per registered edit: the suggestion, its guide, the painted image, the mask
     comparison.mp4   the held-out video: ground truth | first avatar | current avatar
+The folder is checked before any work: these files must not be there yet unless `force`; other files are kept.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from avatarperfect_cli.avatar.rendering import render_avatar
 from avatarperfect_cli.datasets import load_people_snapshot
 from avatarperfect_cli.errors import AvatarPerfectError
 from avatarperfect_cli.io import atomic_write_bytes, read_image, write_image
+from avatarperfect_cli.io.outputs import check_output_folder
 from avatarperfect_cli.io.workspace import Workspace, open_workspace
 from avatarperfect_cli.refinement.pictures import figure_png
 from avatarperfect_cli.stages.evaluate import evaluate
@@ -28,6 +30,7 @@ from avatarperfect_cli.stages.workspace_data import SUGGESTIONS, registered_edit
 
 WHITE = torch.ones(3)
 MASK_TINT = torch.tensor([1.0, 0.0, 0.8])
+REPORT_FILES = ("metrics.png", "suggestions.png", "comparison.mp4")
 
 
 def iteration_metrics(workspace_root: Path, test_dataset: Path, progress: bool = True) -> list[dict]:
@@ -79,17 +82,17 @@ def edits_sheet(workspace: Workspace) -> torch.Tensor | None:
     return torch.cat(rows, dim=0) if rows else None
 
 
-def report(workspace_root: Path, test_dataset: Path, output_dir: Path, fps: float = 10.0, progress: bool = True) -> Path:
-    """Write metrics.png, suggestions.png and comparison.mp4 for the workspace into `output_dir`."""
+def report(
+    workspace_root: Path, test_dataset: Path, output_dir: Path, fps: float = 10.0, progress: bool = True, force: bool = False
+) -> Path:
+    """Write REPORT_FILES for the workspace into `output_dir` (see the module doc); nothing there before the work is done."""
+    output_dir = Path(output_dir)
+    check_output_folder(output_dir, REPORT_FILES, force)
     console = Console(stderr=True, quiet=not progress)
     results = iteration_metrics(workspace_root, test_dataset, progress)
     workspace = open_workspace(workspace_root)
-    output_dir = Path(output_dir)
     title = f"{workspace_root}: held-out {Path(test_dataset).resolve().name}"
-    atomic_write_bytes(output_dir / "metrics.png", metrics_plot(results, title))
     sheet = edits_sheet(workspace)
-    if sheet is not None:
-        write_image(output_dir / "suggestions.png", sheet)
     test = load_people_snapshot(test_dataset, downscale=int(workspace.manifest.get("downscale", 1)))
     if not len(test):
         raise AvatarPerfectError(f"{test_dataset}: no frames")
@@ -99,6 +102,9 @@ def report(workspace_root: Path, test_dataset: Path, output_dir: Path, fps: floa
         for t in track(range(len(test)), description="comparison video", console=console, disable=not progress):
             views = [render_avatar(a, test.body_pose[t], test.transl[t], test.camera, WHITE).image for a in (first, current)]
             write(torch.cat([test.images[t], *views], dim=1))
+    atomic_write_bytes(output_dir / "metrics.png", metrics_plot(results, title))
+    if sheet is not None:
+        write_image(output_dir / "suggestions.png", sheet)
     console.print(f"wrote metrics.png, {'suggestions.png, ' if sheet is not None else ''}comparison.mp4 in {output_dir}")
     for result in results:
         mean = result["mean"]

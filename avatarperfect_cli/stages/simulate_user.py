@@ -3,7 +3,9 @@
 The subject's exact appearance in the suggested pose is rendered by the sample module; the simulated
 user (`sample.simulated_user`) paints white over what should be background and the true colours (or
 each blob's mean colour) over what is wrong, within a budget. The result is an ordinary edited PNG
-for `apply-edit`, written as ws/suggestions/NNN/simulated_edit.png unless another path is given.
+for `apply-edit`, written as ws/suggestions/NNN/simulated_edit.png unless another path is given, with its
+statistics beside it (simulated_edit.json). Another path must be a .png outside the workspace; it and its .json are
+checked before any work and, unless `force`, must not exist yet.
 """
 
 from __future__ import annotations
@@ -15,7 +17,9 @@ from pathlib import Path
 from rich.console import Console
 
 from avatarperfect_cli.io import atomic_write_text, read_image, read_pose, write_image
+from avatarperfect_cli.errors import InputFileError
 from avatarperfect_cli.io.atomic import updated_folder
+from avatarperfect_cli.io.outputs import check_new_output
 from avatarperfect_cli.io.workspace import locked_workspace
 from avatarperfect_cli.sample.simulated_user import PaintResult, UserConfig, paint
 from avatarperfect_cli.sample.subject import SyntheticSubject
@@ -34,10 +38,12 @@ def subject_folder(folder: Path) -> Path:
 
 def simulate_user(
     workspace_root: Path, subject: Path | None = None, config: UserConfig | None = None,
-    output: Path | None = None, progress: bool = True,
+    output: Path | None = None, progress: bool = True, force: bool = False,
 ) -> PaintResult:  # fmt: skip
     """Paint the workspace's latest suggestion; `subject` defaults to the workspace's own dataset."""
     config = config or UserConfig()
+    if output is not None:
+        check_painting_output(Path(output), Path(workspace_root), force)
     with locked_workspace(workspace_root) as workspace:
         folder = latest_suggestion(workspace)
         source = subject_folder(subject) if subject is not None else Path(str(workspace.manifest.get("dataset", "")))
@@ -57,6 +63,14 @@ def simulate_user(
         f"painted {stats.painted_pixels:,} pixels ({100 * stats.budget_used:.0f}% of the budget) into {path}"
     )
     return result
+
+
+def check_painting_output(output: Path, workspace_root: Path, force: bool) -> None:
+    """Refuse, before any work, an output that is not a new .png outside the workspace (and its .json beside it)."""
+    if output.resolve().is_relative_to(workspace_root.resolve()):
+        raise InputFileError(output, f"is inside the workspace {workspace_root}; leave out -o to paint the suggestion's {SIMULATED_EDIT}")
+    check_new_output(output, (".png",), force)
+    check_new_output(output.with_suffix(".json"), (".json",), force)
 
 
 def _write_painting(path: Path, result: PaintResult) -> None:

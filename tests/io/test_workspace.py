@@ -173,3 +173,47 @@ def test_numbered_folders_count_up_and_skip_staging(tmp_path: Path):
     (workspace.root / "edits" / ".003.x.tmp").mkdir()
     assert [p.name for p in workspace.numbered_folders("edits")] == ["002"]
     assert workspace.next_numbered_folder("edits").name == "003"
+
+
+def test_a_lock_that_cannot_be_created_is_one_line_and_reading_needs_none(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    """A workspace whose parent folder is read-only: a writing stage refuses in one line; a read-only one reads it."""
+    from avatarperfect_cli.io import workspace as module
+
+    root = tmp_path / "ws"
+    with new_workspace(root, {"iteration": 0, "history": []}):
+        pass
+    real_open = os.open
+
+    def refusing_open(path, flags, *args):
+        if str(path).endswith(".ws.lock") and flags & os.O_CREAT:
+            raise PermissionError(13, "Permission denied")
+        return real_open(path, flags, *args)
+
+    monkeypatch.setattr(module.os, "open", refusing_open)
+    with pytest.raises(AvatarPerfectError, match="cannot create the workspace's lock file") as error:
+        with locked_workspace(root):
+            pass
+    assert "\n" not in str(error.value)
+    with module.reading_workspace(root) as workspace:
+        assert workspace.iteration == 0
+
+
+def test_reading_a_busy_workspace_needs_no_lock(tmp_path: Path):
+    root = tmp_path / "ws"
+    with new_workspace(root, {"iteration": 0}):
+        pass
+    with workspace_lock(root):
+        with pytest.raises(AvatarPerfectError, match="another avatarperfect stage"):
+            with locked_workspace(root):
+                pass
+        from avatarperfect_cli.io.workspace import reading_workspace
+
+        with reading_workspace(root) as workspace:
+            assert workspace.iteration == 0
+
+
+def test_a_lock_for_a_missing_workspace_leaves_no_folder(tmp_path: Path):
+    with pytest.raises(AvatarPerfectError, match="not a workspace"):
+        with locked_workspace(tmp_path / "no" / "such" / "ws"):
+            pass
+    assert list(tmp_path.iterdir()) == []

@@ -14,8 +14,9 @@ import json
 import math
 import shutil
 import zipfile
+import zlib
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -36,12 +37,14 @@ Damage = Callable[[Path], None]  # rewrites the file (or folder) at the path it 
 
 @dataclass(frozen=True)
 class Case:
-    """name: "class/damage"; make_files(root) writes the inputs under `root` and returns the damaged file;
-    argv(root) is the command line (after `avatarperfect`) that reads them."""
+    """name: "class/damage"; make_files(root) writes the inputs under `root` and returns the damaged file (or the
+    output refused); argv(root) is the command line (after `avatarperfect`) that reads them; names: what the error
+    line must quote instead of the damaged file's name (a bad option's value)."""
 
     name: str
     make_files: Callable[[Path], Path]
     argv: Callable[[Path], list[str]]
+    names: str | None = None
 
 
 @dataclass(frozen=True)
@@ -520,6 +523,12 @@ def _manifest_damages() -> dict[str, tuple[str, Damage]]:
         "reference_pose missing": edit_json(set_key("reference_pose", value=DELETE)),
         "reference_pose 23 joints": edit_json(set_key("reference_pose", "body_pose", value=[[0.0] * 3] * 23)),
         "reference_pose transl NaN": edit_json(set_entry(("reference_pose", "transl"), (1,), math.nan)),
+        "downscale a string": edit_json(set_key("downscale", value="2")),
+        "dataset a number": edit_json(set_key("dataset", value=7)),
+        "transl_offset a string": edit_json(set_key("transl_offset", value="0 0 0")),
+        "history a string": edit_json(set_key("history", value="abc")),
+        "history entry a string": edit_json(set_key("history", value=[{"stage": "train-initial", "avatar": 0}, "oops"])),
+        "history avatar a string": edit_json(set_key("history", value=[{"stage": "train-initial", "avatar": "0"}])),
         **{f"camera {label}": damage for label, damage in camera_damages(("camera",)).items()},
     }
     return {label: ("ws/workspace.json", damage) for label, damage in damages.items()}
@@ -656,3 +665,135 @@ INPUT_CLASSES: list[InputClass] = [
 ]
 
 CASES: list[Case] = [case for input_class in INPUT_CLASSES for case in input_class.cases()]
+
+
+# ------------------------------------------------------------------------ the newer stages and their outputs
+# Outputs that must be refused before any work (unwritable, an existing file or folder, an unknown extension, a
+# file the command did not write), bad option values, and the hand-edited manifest of every workspace stage.
+
+
+def _report(output: str) -> Callable[[Path], list[str]]:
+    return lambda root: ["report", str(root / "ws"), "--test", str(root / "test"), "-o", str(root / output)]
+
+
+def _simulate_user(output: str) -> Callable[[Path], list[str]]:
+    return lambda root: ["simulate-user", str(root / "ws"), "-o", str(root / output)]
+
+
+def write_text(text: str) -> Damage:
+    def make(path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+
+    return make
+
+
+def make_plain_folder(path: Path) -> None:
+    path.mkdir(parents=True)
+    (path / "notes.txt").write_text("a folder of the user's")
+
+
+def nothing(path: Path) -> None:
+    """The target is only named (an output path, a missing workspace)."""
+
+
+def _region_inputs(root: Path) -> None:
+    """_edit_inputs plus region.png, a selection over the painted square."""
+    _edit_inputs(root)
+    region = torch.zeros(HEIGHT, WIDTH, 1)
+    region[2:6, 2:6] = 1.0
+    write_image(root / "region.png", region)
+
+
+def _huge_png_header(width: int, height: int) -> Damage:
+    """A PNG whose header declares width x height RGB pixels and holds no pixel data."""
+
+    def damage(path: Path) -> None:
+        header = width.to_bytes(4, "big") + height.to_bytes(4, "big") + bytes([8, 2, 0, 0, 0])
+        path.write_bytes(b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", header) + _png_chunk(b"IEND", b""))
+
+    return damage
+
+
+def _png_chunk(kind: bytes, data: bytes) -> bytes:
+    return len(data).to_bytes(4, "big") + kind + data + zlib.crc32(kind + data).to_bytes(4, "big")
+
+
+def _animation(suffix: str) -> Damage:
+    """The painted image (edited.png beside the target) saved as a two-frame animation at the target path."""
+
+    def damage(path: Path) -> None:
+        with Image.open(path.parent / "edited.png") as first:
+            frames = [first.convert("RGB"), first.convert("RGB").transpose(Image.Transpose.FLIP_LEFT_RIGHT)]
+        frames[0].save(path, format=suffix, save_all=True, append_images=frames[1:])
+
+    return damage
+
+
+def _history(value: object) -> Damage:
+    return edit_json(set_key("history", value=value))
+
+
+def _edit_argv(*options: str) -> Callable[[Path], list[str]]:
+    return lambda root: ["apply-edit", str(root / "ws"), *options]
+
+
+def _newer_stage_cases() -> list[Case]:
+    ws_json = "ws/workspace.json"
+    cases = [
+        Case("report/output an existing file", _damaged(_workspace_and_test, "out", write_text("mine")), _report("out")),
+        Case("report/output under a file", _damaged(_workspace_and_test, "afile", write_text("mine")), _report("afile/report")),
+        Case("report/metrics.png already there", _damaged(_workspace_and_test, "out/metrics.png", write_text("mine")), _report("out")),
+        Case("simulate-user/output under a file", _damaged(_workspace_only, "afile", write_text("x")), _simulate_user("afile/p.png")),
+        Case("simulate-user/output a folder", _damaged(_workspace_only, "p.png", make_plain_folder), _simulate_user("p.png")),
+        Case("simulate-user/output without extension", _damaged(_workspace_only, "painted", nothing), _simulate_user("painted")),
+        Case("simulate-user/output .xyz", _damaged(_workspace_only, "painted.xyz", nothing), _simulate_user("painted.xyz")),
+        Case("simulate-user/its .json already there", _damaged(_workspace_only, "p.json", write_text("{}")), _simulate_user("p.png")),
+        Case("simulate-user/output an existing file", _damaged(_workspace_only, "p.png", write_text("x")), _simulate_user("p.png")),
+        Case(
+            "simulate-user/output inside the workspace",
+            _damaged(_workspace_only, "ws/suggestions/005/suggested.png", write_text("x")),
+            _simulate_user("ws/suggestions/005/suggested.png"),
+        ),
+        Case("apply-edit/workspace missing", _damaged(_edit_inputs, "no/such/ws", nothing),
+             lambda root: ["apply-edit", str(root / "no" / "such" / "ws"), str(root / "edited.png")]),  # fmt: skip
+        Case("apply-edit/--erase bogus", _damaged(_region_inputs, "region.png", nothing),
+             _edit_argv("--region", "REGION", "--erase", "bogus"), names="bogus"),  # fmt: skip
+        Case("apply-edit/--fill rgb(300,0,0)", _damaged(_region_inputs, "region.png", nothing),
+             _edit_argv("--region", "REGION", "--fill", "rgb(300,0,0)", "--pose", "POSE"), names="rgb(300,0,0)"),  # fmt: skip
+        Case("edit-png/10000x10000 header", _damaged(_edit_inputs, "edited.png", _huge_png_header(10000, 10000)),
+             _edit_argv("EDITED", "--pose", "POSE")),  # fmt: skip
+        Case("edit-png/animated GIF", _damaged(_edit_inputs, "edited.gif", _animation("GIF")),
+             _edit_argv("ROOT/edited.gif", "--pose", "POSE")),  # fmt: skip
+        Case("edit-png/animated PNG", _damaged(_edit_inputs, "animated.png", _animation("PNG")),
+             _edit_argv("ROOT/animated.png", "--pose", "POSE")),  # fmt: skip
+        Case("prepare/empty .mp4", _damaged(lambda root: None, "empty.mp4", write_bytes(b"")), _prepare("empty.mp4")),
+        Case("prepare/text .mp4", _damaged(lambda root: None, "text.mp4", write_text("not a video\n")), _prepare("text.mp4")),
+        Case("prepare/output a folder of other files", _damaged(lambda root: write_text("x")(root / "walk.mp4"), "out", make_plain_folder),
+             _prepare("walk.mp4")),  # fmt: skip
+    ]
+    for label, value in (("entry a string", ["oops"]), ("entry a number", [7]), ("a string", "abc")):
+        for command, argv in (
+            ("apply-edit --list", _edit_argv("--list")),
+            ("refine", lambda root: ["refine", str(root / "ws")]),
+            ("apply-edit --erase splat", _edit_argv("--region", "REGION", "--erase", "splat", "--pose", "POSE")),
+        ):
+            cases.append(Case(f"manifest history {label}/{command}", _damaged(_region_inputs, ws_json, _history(value)), argv))
+    return [replace(case, argv=_placeholders(case.argv)) for case in cases]
+
+
+def _prepare(video: str) -> Callable[[Path], list[str]]:
+    return lambda root: ["prepare", str(root / video), str(root / "out")]
+
+
+def _placeholders(argv: Callable[[Path], list[str]]) -> Callable[[Path], list[str]]:
+    """argv with REGION, POSE, EDITED and ROOT/ spelled out under the case's root."""
+    names = {"REGION": "region.png", "POSE": "pose.json", "EDITED": "edited.png"}
+
+    def spelled(root: Path) -> list[str]:
+        return [str(root / names[a]) if a in names else a.replace("ROOT/", f"{root}/") for a in argv(root)]
+
+    return spelled
+
+
+CASES += _newer_stage_cases()

@@ -21,7 +21,10 @@ from avatarperfect_cli.cli import app
 from tests.reliability.corpus import CASES, Case
 
 LOCK_FILE = re.compile(r"\.[^/]+\.lock")  # a workspace's lock, a hidden sibling (io/workspace.py)
-SUBPROCESS_CASES = ["ply/fewer vertices declared", "motion/single .npy", "dataset/image truncated", "workspace/camera fx zero"]
+SUBPROCESS_CASES = [
+    "ply/fewer vertices declared", "motion/single .npy", "dataset/image truncated", "workspace/camera fx zero",
+    "prepare/empty .mp4", "prepare/text .mp4", "edit-png/10000x10000 header", "report/output an existing file",
+]  # fmt: skip
 CASES_BY_NAME = {case.name: case for case in CASES}
 
 
@@ -39,7 +42,10 @@ def check_failure(case: Case, root: Path, damaged: Path, before: dict[str, str],
     assert len(lines) == 1, f"{case.name}: {len(lines)} lines on stderr:\n{stderr}"
     message = lines[0]
     assert message.startswith("error: ") and "Traceback" not in stderr
-    assert damaged.name in message and str(root) in message, f"{case.name}: the message does not name {damaged}: {message}"
+    if case.names is not None:
+        assert case.names in message, f"{case.name}: the message does not quote {case.names!r}: {message}"
+    else:
+        assert damaged.name in message and str(root) in message, f"{case.name}: the message does not name {damaged}: {message}"
     after = snapshot(root)
     assert {path: after.get(path) for path in before} == before, f"{case.name}: an input file changed"
     new = [path for path in after if path not in before]
