@@ -7,16 +7,9 @@ from pathlib import Path
 from typing import Any
 
 from avatarperfect_cli.body.base import NUM_JOINTS, SMPL_JOINT_NAMES, SMPL_PARENTS, BodyTemplate
-from avatarperfect_cli.body.skeleton import (
-    axis_angle_to_matrix,
-    blend_transforms,
-    forward_kinematics,
-    matrix_to_quaternion,
-    quaternion_to_matrix,
-    skin_gaussians,
-    skin_points,
-)
+from avatarperfect_cli.body.skeleton import blend_transforms, forward_kinematics, matrix_to_quaternion, skin_gaussians, skin_points
 from avatarperfect_cli.errors import AvatarPerfectError
+from avatarperfect_cli.rotations import axis_angle_to_matrix, quaternion_to_matrix
 
 BODY_MODELS = ("anny", "smpl")
 

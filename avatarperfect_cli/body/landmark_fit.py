@@ -28,8 +28,8 @@ import torch.nn.functional as F
 
 from avatarperfect_cli.body.base import NUM_JOINTS, SMPL_PARENTS, BodyTemplate
 from avatarperfect_cli.body.skeleton import forward_kinematics, skin_points
-from avatarperfect_cli.refinement.pose_prior import matrix_to_axis_angle, rotation_6d_to_matrix
 from avatarperfect_cli.render import Camera
+from avatarperfect_cli.rotations import matrix_to_axis_angle, rotation_6d_to_matrix
 
 # Bones whose 3-D directions are compared (SMPL joint pairs): legs, arms, hip and shoulder lines, torso.
 DIRECTION_BONES = ((1, 4), (4, 7), (2, 5), (5, 8), (16, 18), (18, 20), (17, 19), (19, 21), (1, 2), (16, 17), (0, 12))

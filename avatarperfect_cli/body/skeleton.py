@@ -12,9 +12,8 @@ import numpy as np
 import torch
 
 from avatarperfect_cli.body.base import NUM_JOINTS, SMPL_PARENTS
+from avatarperfect_cli.rotations import axis_angle_to_matrix
 
-# Below this squared angle (rad^2) Rodrigues' coefficients use their Taylor series.
-_SMALL_ANGLE_SQ = 1e-6
 # Polar decomposition: at most this many Newton steps (skinning blends converge in 2 to 6), stopping once
 # a step changes no entry by more than the tolerance for the dtype (the error then is about its square).
 _POLAR_MAX_ITERATIONS = 20
@@ -24,43 +23,6 @@ _POLAR_SCALING_CHANGE = 1e-2
 # Determinants smaller than this in magnitude are replaced by it (a rank-deficient blend).
 _TINY_DETERMINANT = 1e-30
 SKINNING_BACKENDS = ("auto", "numba", "torch")
-
-
-def _skew(v: torch.Tensor) -> torch.Tensor:
-    """(..., 3) vectors -> (..., 3, 3) cross-product matrices [v]x."""
-    x, y, z = v.unbind(-1)
-    zero = torch.zeros_like(x)
-    return torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(v.shape + (3,))
-
-
-def axis_angle_to_matrix(axis_angle: torch.Tensor) -> torch.Tensor:
-    """Rodrigues' formula. axis_angle: (..., 3) axis times angle in radians -> (..., 3, 3) rotations.
-
-    R = I + a K + b K^2 with K = [axis_angle]x, a = sin(t)/t, b = (1 - cos t)/t^2; a and b use their
-    Taylor series near t = 0, so values and gradients are exact there.
-    """
-    angle_sq = (axis_angle * axis_angle).sum(-1)
-    small = angle_sq < _SMALL_ANGLE_SQ
-    angle = torch.sqrt(torch.where(small, torch.ones_like(angle_sq), angle_sq))
-    a = torch.where(small, 1.0 - angle_sq / 6.0 + angle_sq * angle_sq / 120.0, torch.sin(angle) / angle)
-    half_sinc = torch.sin(0.5 * angle) / angle  # (1 - cos t) / t^2 = 2 (sin(t/2) / t)^2, no cancellation
-    b = torch.where(small, 0.5 - angle_sq / 24.0 + angle_sq * angle_sq / 720.0, 2.0 * half_sinc * half_sinc)
-    k = _skew(axis_angle)
-    eye = torch.eye(3, dtype=axis_angle.dtype, device=axis_angle.device)
-    return eye + a[..., None, None] * k + b[..., None, None] * (k @ k)
-
-
-def quaternion_to_matrix(quats: torch.Tensor) -> torch.Tensor:
-    """(..., 4) quaternions w x y z, any non-zero norm -> (..., 3, 3) rotation matrices."""
-    w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(quats.shape[:-1] + (3, 3))  # fmt: skip
 
 
 @numba.njit(cache=True)

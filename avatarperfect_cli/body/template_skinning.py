@@ -25,7 +25,8 @@ import numpy as np
 import torch
 
 from avatarperfect_cli.body.base import BodyTemplate
-from avatarperfect_cli.body.skeleton import blend_transforms, matrix_to_quaternion, quaternion_to_matrix, skin_gaussians, skin_points
+from avatarperfect_cli.body.skeleton import blend_transforms, matrix_to_quaternion, skin_gaussians, skin_points
+from avatarperfect_cli.rotations import quaternion_to_matrix
 
 K_NEAREST = 8
 FALLOFF_FLOOR = 5e-3  # metres; a point closer than this to its nearest vertex blends like one this far

@@ -13,11 +13,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from avatarperfect_cli.body import axis_angle_to_matrix
 from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
 from avatarperfect_cli.io.atomic import atomic_path
 from avatarperfect_cli.io.paths import require_file
-from avatarperfect_cli.refinement.pose_prior import matrix_to_axis_angle
+from avatarperfect_cli.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
 # The world up axes a motion may have (--up), as unit vectors in its own world frame.
 UP_AXES = {"y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0), "z": (0.0, 0.0, 1.0)}

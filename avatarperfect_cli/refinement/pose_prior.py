@@ -32,6 +32,7 @@ import torch.nn.functional as F
 
 from avatarperfect_cli.body import NUM_JOINTS, SMPL_JOINT_NAMES, axis_angle_to_matrix
 from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
+from avatarperfect_cli.rotations import matrix_to_axis_angle, rotation_6d_to_matrix
 
 LATENT_DIM = 32
 POSE_PRIORS = ("builtin", "vposer")
@@ -199,48 +200,6 @@ class BuiltinPosePrior:
 
     def sample_latent(self, generator: torch.Generator) -> torch.Tensor:
         return torch.randn(LATENT_DIM, generator=generator)
-
-
-def rotation_6d_to_matrix(columns: torch.Tensor) -> torch.Tensor:
-    """(..., 3, 2) two 3-vectors as columns -> (..., 3, 3) rotations by Gram-Schmidt (Zhou et al. 2019):
-    b1 = normalise(c0), b2 = normalise(c1 - (b1.c1) b1), b3 = b1 x b2, R = [b1 b2 b3] as columns."""
-    first = F.normalize(columns[..., 0], dim=-1)
-    second = columns[..., 1]
-    second = F.normalize(second - (first * second).sum(-1, keepdim=True) * first, dim=-1)
-    return torch.stack([first, second, torch.linalg.cross(first, second, dim=-1)], dim=-1)
-
-
-def matrix_to_axis_angle(rotations: torch.Tensor) -> torch.Tensor:
-    """(..., 3, 3) rotations -> (..., 3) axis-angle with angle in [0, pi]; differentiable.
-
-    Goes through the unit quaternion, taken (Shepperd's method) from whichever of 1 + trace and 1 + 2 R_ii - trace
-    is largest (at least 1), so it is well conditioned at every angle, pi included.
-    """
-    r = rotations
-    r00, r01, r02 = r[..., 0, 0], r[..., 0, 1], r[..., 0, 2]
-    r10, r11, r12 = r[..., 1, 0], r[..., 1, 1], r[..., 1, 2]
-    r20, r21, r22 = r[..., 2, 0], r[..., 2, 1], r[..., 2, 2]
-    # the four candidates (w, x, y, z) * 4 * (the large component), stacked as (..., 4 candidates, 4)
-    traces = torch.stack([1 + r00 + r11 + r22, 1 + r00 - r11 - r22, 1 - r00 + r11 - r22, 1 - r00 - r11 + r22], -1)
-    candidates = torch.stack(
-        [
-            torch.stack([traces[..., 0], r21 - r12, r02 - r20, r10 - r01], -1),
-            torch.stack([r21 - r12, traces[..., 1], r10 + r01, r02 + r20], -1),
-            torch.stack([r02 - r20, r10 + r01, traces[..., 2], r21 + r12], -1),
-            torch.stack([r10 - r01, r02 + r20, r21 + r12, traces[..., 3]], -1),
-        ],
-        -2,
-    ) / (2.0 * torch.sqrt(traces.clamp_min(0.25)))[..., None]  # the chosen trace is >= 1; others stay finite
-    best = traces.argmax(-1)[..., None, None].expand(traces.shape[:-1] + (1, 4))
-    quats = F.normalize(candidates.gather(-2, best)[..., 0, :], dim=-1)
-    quats = torch.where(quats[..., :1] < 0, -quats, quats)
-    w, vector = quats[..., 0], quats[..., 1:]
-    sine_sq = (vector * vector).sum(-1)
-    small = sine_sq < 1e-12
-    sine = torch.sqrt(torch.where(small, torch.ones_like(sine_sq), sine_sq))
-    # angle / sin(angle / 2), by its series 2 / w (1 - sin^2 / (3 w^2)) for small angles
-    scale = torch.where(small, 2.0 / w * (1.0 - sine_sq / (3.0 * w * w)), 2.0 * torch.atan2(sine, w) / sine)
-    return vector * scale[..., None]
 
 
 class _Placeholder(dict):

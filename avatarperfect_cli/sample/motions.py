@@ -15,7 +15,8 @@ import numpy as np
 import torch
 
 from avatarperfect_cli.body.base import NUM_JOINTS, SMPL_JOINT_NAMES
-from avatarperfect_cli.body.skeleton import axis_angle_to_matrix, matrix_to_quaternion
+from avatarperfect_cli.body.skeleton import matrix_to_quaternion
+from avatarperfect_cli.rotations import axis_angle_to_matrix
 
 JOINT = {name: index for index, name in enumerate(SMPL_JOINT_NAMES)}
 A_POSE_SHOULDER = 0.85  # radians the shoulders lower the arms from horizontal in the A-pose

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from avatarperfect_cli.body import BodyTemplate, load_body_template, load_described_template
-from avatarperfect_cli.body.skeleton import forward_kinematics, quaternion_to_matrix, skin_gaussians, skin_points
+from avatarperfect_cli.body.skeleton import forward_kinematics, skin_gaussians, skin_points
 from avatarperfect_cli.body.template_skinning import (
     FALLOFF_FLOOR,
     GRID_CELL,
@@ -20,6 +20,7 @@ from avatarperfect_cli.body.template_skinning import (
     template_skin_weights,
 )
 from avatarperfect_cli.errors import AvatarPerfectError
+from avatarperfect_cli.rotations import quaternion_to_matrix
 
 
 def random_template(count: int, seed: int = 0) -> BodyTemplate:

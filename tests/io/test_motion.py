@@ -102,7 +102,7 @@ def turning_motion(frames: int = 5) -> tuple[torch.Tensor, torch.Tensor]:
 def convert_world(body_pose: torch.Tensor, transl: torch.Tensor, rotation: torch.Tensor, rest_pelvis: torch.Tensor):
     """The same motion stored in a world turned by `rotation` (3, 3): the roots' orientations and positions
     (rest pelvis + transl) turn with it, as a tool writing in that frame would store them."""
-    from avatarperfect_cli.refinement.pose_prior import matrix_to_axis_angle
+    from avatarperfect_cli.rotations import matrix_to_axis_angle
 
     converted = body_pose.clone()
     converted[:, 0] = matrix_to_axis_angle(rotation @ axis_angle_to_matrix(body_pose[:, 0]))

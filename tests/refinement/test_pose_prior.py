@@ -19,8 +19,6 @@ from avatarperfect_cli.refinement.pose_prior import (
     joint_limit_violations,
     joint_limits_deg,
     load_pose_prior,
-    matrix_to_axis_angle,
-    rotation_6d_to_matrix,
 )
 from avatarperfect_cli.sample.motions import turntable
 
@@ -127,41 +125,6 @@ def test_joint_limits_are_mirror_symmetric() -> None:
         pose[1:22] = limits[..., 0] + fraction * (limits[..., 1] - limits[..., 0])
         mirrored = pose[mirror_of] * torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64)
         assert joint_limit_violations(pose) == [] and joint_limit_violations(mirrored) == []
-
-
-# ---------------------------------------------------------------- rotations
-
-
-def test_rotation_6d_to_matrix_gives_proper_rotations() -> None:
-    columns = torch.randn(500, 3, 2, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
-    rotations = rotation_6d_to_matrix(columns)
-    eye = torch.eye(3, dtype=torch.float64).expand(500, 3, 3)
-    assert torch.allclose(rotations.transpose(1, 2) @ rotations, eye, atol=1e-12)
-    assert torch.allclose(torch.linalg.det(rotations), torch.ones(500, dtype=torch.float64), atol=1e-12)
-    # Gram-Schmidt: the first column is the first input's direction, the second lies in the inputs' plane
-    first = columns[..., 0] / columns[..., 0].norm(dim=-1, keepdim=True)
-    assert torch.allclose(rotations[..., 0], first, atol=1e-12)
-    normal = torch.linalg.cross(columns[..., 0], columns[..., 1], dim=-1)
-    assert torch.allclose((rotations[..., 1] * normal).sum(-1), torch.zeros(500, dtype=torch.float64), atol=1e-10)
-    assert ((rotations[..., 1] * columns[..., 1]).sum(-1) > 0).all()
-
-
-def test_matrix_to_axis_angle_round_trips_at_every_angle() -> None:
-    generator = torch.Generator().manual_seed(4)
-    axes = torch.nn.functional.normalize(torch.randn(9, 3, generator=generator, dtype=torch.float64), dim=-1)
-    angles = [0.0, 1e-9, 1e-4, 0.5, 2.0, 3.0, math.pi - 1e-4, math.pi - 1e-8, math.pi]
-    angles = torch.tensor(angles, dtype=torch.float64)
-    axis_angle = torch.cat([axes * angles[:, None], -axes[:4] * angles[-4:, None]])
-    recovered = matrix_to_axis_angle(axis_angle_to_matrix(axis_angle))
-    assert torch.allclose(axis_angle_to_matrix(recovered), axis_angle_to_matrix(axis_angle), atol=1e-12)
-    assert torch.allclose(recovered.norm(dim=-1), axis_angle.norm(dim=-1), atol=1e-7)
-    below_pi = axis_angle.norm(dim=-1) < 3.1
-    assert torch.allclose(recovered[below_pi], axis_angle[below_pi], atol=1e-12)
-    # gradient of the round trip is the identity away from pi
-    point = (axes[4] * 2.0).requires_grad_()
-    assert torch.autograd.gradcheck(lambda v: matrix_to_axis_angle(axis_angle_to_matrix(v)), (point,))
-    jacobian = torch.autograd.functional.jacobian(lambda v: matrix_to_axis_angle(axis_angle_to_matrix(v)), point)
-    assert torch.allclose(jacobian, torch.eye(3, dtype=torch.float64), atol=1e-10)
 
 
 # ---------------------------------------------------------------- VPoser

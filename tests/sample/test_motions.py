@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from avatarperfect_cli.body.skeleton import axis_angle_to_matrix, forward_kinematics
+from avatarperfect_cli.body.skeleton import forward_kinematics
 from avatarperfect_cli.io.motion import read_motion
+from avatarperfect_cli.rotations import axis_angle_to_matrix
 from avatarperfect_cli.sample import motions
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples" / "motions"

@@ -17,7 +17,7 @@ from avatarperfect_cli.body import axis_angle_to_matrix, load_body_template
 from avatarperfect_cli.cli import app
 from avatarperfect_cli.datasets import load_people_snapshot
 from avatarperfect_cli.io.workspace import open_workspace
-from avatarperfect_cli.refinement.pose_prior import matrix_to_axis_angle
+from avatarperfect_cli.rotations import matrix_to_axis_angle
 from avatarperfect_cli.stages.workspace_data import load_video
 
 SAMPLE = Path(__file__).resolve().parents[2] / "examples" / "sample" / "train"

@@ -233,7 +233,7 @@ def test_a_y_down_motion_renders_like_the_y_up_original(tmp_path: Path, avatar_f
     does; read as y-up (--up y), it renders upside down."""
     from avatarperfect_cli.body import axis_angle_to_matrix
     from avatarperfect_cli.io.motion import write_motion
-    from avatarperfect_cli.refinement.pose_prior import matrix_to_axis_angle
+    from avatarperfect_cli.rotations import matrix_to_axis_angle
 
     frames = 3
     body_pose = torch.zeros(frames, 24, 3)
