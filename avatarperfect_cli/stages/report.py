@@ -22,10 +22,10 @@ from avatarperfect_cli.datasets import load_people_snapshot
 from avatarperfect_cli.errors import AvatarPerfectError
 from avatarperfect_cli.io import atomic_write_bytes, read_image, write_image
 from avatarperfect_cli.io.outputs import check_output_folder
+from avatarperfect_cli.io.video import frame_writer
 from avatarperfect_cli.io.workspace import Workspace, open_workspace
 from avatarperfect_cli.refinement.pictures import figure_png
 from avatarperfect_cli.stages.evaluate import evaluate
-from avatarperfect_cli.stages.render import frame_writer
 from avatarperfect_cli.stages.workspace_data import SUGGESTIONS, registered_edits
 
 WHITE = torch.ones(3)

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
-from avatarperfect_cli.io import read_image, write_camera, write_gaussians
+from avatarperfect_cli.io import read_image, video, write_camera, write_gaussians
 from avatarperfect_cli.render import Camera, look_at
 from avatarperfect_cli.stages import render as stage
 from avatarperfect_cli.stages.render import orbit_cameras, parse_background, render_avatar_views, render_ply
@@ -175,7 +175,7 @@ class RecordingVideoWriter:
 def test_each_frame_is_written_as_soon_as_it_is_rendered(tmp_path: Path, avatar_files, monkeypatch, output: str):
     """Streaming: frame k reaches the encoder (or the folder) before frame k + 1 is rendered."""
     events = RecordingVideoWriter.events = []
-    real_render, real_write_image = stage.render_avatar, stage.write_image
+    real_render, real_write_image = stage.render_avatar, video.write_image
 
     def render(*args):
         events.append("render")
@@ -186,8 +186,8 @@ def test_each_frame_is_written_as_soon_as_it_is_rendered(tmp_path: Path, avatar_
         real_write_image(*args)
 
     monkeypatch.setattr(stage, "render_avatar", render)
-    monkeypatch.setattr(stage, "write_image", write_image)
-    monkeypatch.setattr(stage.cv2, "VideoWriter", RecordingVideoWriter)
+    monkeypatch.setattr(video, "write_image", write_image)
+    monkeypatch.setattr(video.cv2, "VideoWriter", RecordingVideoWriter)
     turntable(avatar_files, tmp_path / output, frames=4)
     assert events == ["render", "write"] * 4
 
