@@ -385,6 +385,7 @@ def refine(
 ) -> None:
     """Re-optimise the avatar on the video plus every painted image (writes the next avatar iteration)."""
     from avatarperfect_cli.devices import resolve_device
+    from avatarperfect_cli.refinement.additional_training import SPLIT_PAINTED
     from avatarperfect_cli.stages import refine as stage
 
     torch_device = resolve_device(device)
@@ -394,7 +395,7 @@ def refine(
         share = None if uniform_edits else new_edit_share
         settings = stage.RefineSettings(
             iterations, edit_probability, seed, protect_seen=not delete_seen, new_edit_share=share, keep_shapes=keep_shapes,
-            edit_loss_weight=edit_loss_weight, barely_seen_rates=not slow_barely_seen, split_painted=None if no_split else stage.SPLIT_PAINTED,
+            edit_loss_weight=edit_loss_weight, barely_seen_rates=not slow_barely_seen, split_painted=None if no_split else SPLIT_PAINTED,
             template_skinning=template_skinning, template_shift=template_shift_mm / 1e3, reanchor=not no_reanchor,
             smpl_model_dir=smpl_model_dir,
             device=torch_device,

@@ -246,6 +246,7 @@ def test_apply_edit_refine_revert_loop(workspace: Path, tmp_path: Path):
 def test_refine_gives_the_barely_seen_gaussians_the_first_fits_rates(workspace: Path, tmp_path: Path, monkeypatch):
     """With an edit, the Gaussians the video saw less than average (V < mean V, of those the edit's stroke left)
     learn positions and shapes at GART's rates, the others at refine's; --slow-barely-seen keeps refine's."""
+    from avatarperfect_cli.refinement.additional_training import RefineSettings, refine_config
     from avatarperfect_cli.refinement.erase import centres_in_region
     from avatarperfect_cli.stages import refine as stage
     from avatarperfect_cli.training.trainer import TrainConfig
@@ -269,7 +270,7 @@ def test_refine_gives_the_barely_seen_gaussians_the_first_fits_rates(workspace: 
     kept = ~(centres_in_region(avatar, read_pose(workspace / "edits" / "001" / "pose.json"), background) & ~seen)
     count, scales = captured[-1]
     assert count == int(kept.sum()) < len(avatar)
-    gart, refine_rates = TrainConfig().learning_rates, stage.refine_config(stage.RefineSettings()).learning_rates
+    gart, refine_rates = TrainConfig().learning_rates, refine_config(RefineSettings()).learning_rates
     barely = ~seen[kept]
     assert 0 < int(barely.sum()) < count
     for name in ("means", "quats", "log_scales"):
@@ -286,6 +287,7 @@ def test_refine_splits_the_large_barely_seen_gaussians_under_a_new_edit(workspac
     """Before training, every Gaussian the video saw less than average, wider than 5 mm, that the new edit's
     strokes show (blend weight over M_k at least 0.1 px) becomes two children at GART's rates; the others keep
     their rows and order. --no-split keeps the count."""
+    from avatarperfect_cli.refinement.additional_training import barely_seen_rate_scales
     from avatarperfect_cli.refinement.visibility import painted_visibility
     from avatarperfect_cli.stages import refine as stage
 
@@ -320,7 +322,7 @@ def test_refine_splits_the_large_barely_seen_gaussians_under_a_new_edit(workspac
     torch.testing.assert_close(params["means"][: n - count], avatar.params["means"].detach()[~split], rtol=0, atol=0)
     parents_log_scales = avatar.params["log_scales"].detach()[split]
     torch.testing.assert_close(params["log_scales"][n - count :], torch.cat([parents_log_scales] * 2) - math.log(1.6))
-    gart = stage.barely_seen_rate_scales(torch.zeros(1, dtype=torch.bool))
+    gart = barely_seen_rate_scales(torch.zeros(1, dtype=torch.bool))
     for name, scale in rates.items():
         assert torch.all(scale[n - count :] == gart[name][0]), name
 
@@ -412,48 +414,6 @@ def test_two_rounds_of_the_loop_and_the_report(workspace: Path, tmp_path: Path):
     assert sheet.shape[:2] == (2 * 64, 4 * 64)
 
 
-def test_new_edits_share_the_given_part_of_the_edit_draws():
-    from avatarperfect_cli.stages.refine import edit_draw_weights
-    from avatarperfect_cli.stages.workspace_data import RegisteredEdit
-
-    edits = [RegisteredEdit(Path(f"edits/{n:03d}"), None) for n in (1, 2, 3, 4)]  # type: ignore[arg-type]
-    weights = edit_draw_weights(edits, {4}, 0.5)
-    assert weights[3] == pytest.approx(sum(weights[:3])) and len(set(weights[:3])) == 1
-    assert edit_draw_weights(edits, {3, 4}, 0.8) == pytest.approx([0.1, 0.1, 0.4, 0.4])
-    assert edit_draw_weights(edits, {4}, None) == [1.0] * 4  # the paper: every edit alike
-    assert edit_draw_weights(edits, set(), 0.5) == [1.0] * 4 == edit_draw_weights(edits, {1, 2, 3, 4}, 0.5)
-
-
-def test_the_first_refine_gives_its_new_edits_the_share_later_refines_give_them():
-    from avatarperfect_cli.stages.refine import edit_step_share
-
-    assert edit_step_share(0.3, 0.5, 1, 0) == pytest.approx(0.15) == edit_step_share(0.3, 0.5, 2, 0)
-    assert edit_step_share(0.3, 0.5, 1, 3) == 0.3 == edit_step_share(0.3, 0.5, 0, 4)  # later refines, a refine with no new edit
-    assert edit_step_share(0.3, None, 1, 0) == 0.3  # every edit alike (the paper): the full share
-    assert edit_step_share(0.6, 0.8, 1, 0) == pytest.approx(0.48)
-
-
-def test_refine_config_continues_the_fit_gently():
-    """Positions from REFINE_MEANS_RATE, scales and rotations at REFINE_SHAPE_RATE_FACTOR of GART's rates,
-    skinning from step 0, no densification; colours and opacities at GART's rates."""
-    from avatarperfect_cli.stages.refine import (
-        EDIT_LOSS_WEIGHT, REFINE_MEANS_RATE, REFINE_SHAPE_RATE_FACTOR, RefineSettings, refine_config,
-    )  # fmt: skip
-    from avatarperfect_cli.training.trainer import TrainConfig
-
-    gart, config = TrainConfig().learning_rates, refine_config(RefineSettings(iterations=300))
-    rates = config.learning_rates
-    assert 0.0 < REFINE_SHAPE_RATE_FACTOR < 1.0
-    for name in ("quats", "log_scales"):
-        assert rates.at(name, 0) == pytest.approx(REFINE_SHAPE_RATE_FACTOR * gart.at(name, 0))
-    for name in ("opacity_logits", "sh_dc", "sh_rest"):
-        assert rates.at(name, 150) == gart.at(name, 150)
-    assert rates.at("means", 0) == pytest.approx(REFINE_MEANS_RATE) and rates.at("means", 300) == pytest.approx(gart.means_final)
-    assert rates.at("skin_logits", 0) == pytest.approx(gart.skin_logits) and gart.skin_logits > 0.0
-    assert config.iterations == 300 and config.densify.refine_stop == 0
-    assert config.edit_loss_weight == EDIT_LOSS_WEIGHT and 0.0 < EDIT_LOSS_WEIGHT < 1.0
-
-
 @pytest.mark.parametrize(
     "option", [["--new-edit-share", "0"], ["--new-edit-share", "1.5"], ["--edit-probability", "-0.1"], ["--template-skinning", "1.5"],
                ["--template-shift-mm", "0"], ["--edit-loss-weight", "0"]]  # fmt: skip
@@ -540,7 +500,7 @@ def test_reanchored_pull_keeps_a_turntable_where_it_was(trained: Path):
     weights were the template's already stay put."""
     from avatarperfect_cli.body import load_described_template
     from avatarperfect_cli.body.template_skinning import template_skin_weights
-    from avatarperfect_cli.stages.refine import RefineSettings, pull_toward_template_skinning
+    from avatarperfect_cli.refinement.additional_training import pull_toward_template_skinning
     from avatarperfect_cli.stages.workspace_data import load_video
 
     avatar = Avatar.load(trained / "avatar" / "000.ply")
@@ -553,7 +513,7 @@ def test_reanchored_pull_keeps_a_turntable_where_it_was(trained: Path):
     transl = video.transl[:1].repeat(8, 1)
     before = [avatar.pose(pose, offset) for pose, offset in zip(body_pose, transl)]
     means = avatar.params["means"].detach().clone()
-    pull_toward_template_skinning(avatar, body_pose, transl, RefineSettings())
+    pull_toward_template_skinning(avatar, template, body_pose, transl, share=1.0, max_shift=0.003)
     moved = (avatar.params["means"].detach() - means).norm(dim=1)
     assert float(moved[wrong].quantile(0.75)) > 1e-3 and float(moved[~wrong].max()) < 1e-4
     at_new_means = template_skin_weights(template, avatar.params["means"].detach())
