@@ -44,6 +44,7 @@ from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import cv2
 import torch
 from typer.testing import CliRunner
 
@@ -52,6 +53,7 @@ from avatarperfect_cli.cli import app
 from avatarperfect_cli.io import read_image, write_image, write_pose
 from avatarperfect_cli.io.atomic import SAVE_DELAY_VARIABLE
 from avatarperfect_cli.io.workspace import lock_path, open_workspace
+from avatarperfect_cli.stages.report import REPORT_FILES
 from avatarperfect_cli.stages.workspace_data import EDITS, latest_suggestion, reference_pose
 
 SAMPLE = Path(__file__).resolve().parents[2] / "examples" / "sample"
@@ -97,14 +99,17 @@ class Stage:
     (after `avatarperfect`) that runs the stage on workspace `ws`; base: the stage whose finished workspace this
     one starts from (None: no workspace yet); expected: the stage whose finished workspace is this one's new
     state (None: its own reference run; then the files that run left alone must stay byte-identical);
-    refreshes: a folder of derived data (e.g. "visibility") that the stage brings up to date, in a commit of
-    its own, before its result: the old workspace with that folder as the reference left it also counts as old."""
+    refreshes: folders of derived data (e.g. "visibility") that the stage brings up to date, each in a commit of
+    its own, before its result: the old workspace with any of them as the reference left it also counts as old;
+    outputs: the files the stage writes outside the workspace (relative to `inputs`): after a kill each is absent
+    or complete, and only SIGKILL may leave a hidden temporary beside them."""
 
     name: str
     prepare: Callable[[Path, Path], list[str]]
     base: str | None = None
     expected: str | None = None
-    refreshes: str | None = None
+    refreshes: tuple[str, ...] = ()
+    outputs: tuple[str, ...] = ()
 
 
 def _train(*extra: str) -> Callable[[Path, Path], list[str]]:
@@ -138,9 +143,17 @@ STAGES: list[Stage] = [
     Stage("apply-edit --fill", lambda ws, inputs: ["apply-edit", str(ws), "--region", str(_region(ws, inputs)), "--fill", "white"], base="suggest"),
     Stage("apply-edit --erase", lambda ws, inputs: ["apply-edit", str(ws), "--region", str(_region(ws, inputs)), "--erase", "center"], base="suggest"),
     Stage("apply-edit --remove", lambda ws, inputs: ["apply-edit", str(ws), "--remove", "1"], base="apply-edit"),
-    Stage("refine", lambda ws, inputs: ["refine", str(ws), "--iterations", "5"], base="apply-edit", refreshes="visibility"),
+    Stage("refine", lambda ws, inputs: ["refine", str(ws), "--iterations", "5"], base="apply-edit", refreshes=("visibility",)),
     Stage("refine --revert-to", lambda ws, inputs: ["refine", str(ws), "--revert-to", "0"], base="refine"),
     Stage("evaluate", lambda ws, inputs: ["evaluate", str(ws), "--test", str(SAMPLE / "test"), "--frames", "0:19:10"], base="refine"),
+    Stage(
+        "simulate-user -o", lambda ws, inputs: ["simulate-user", str(ws), "--subject", str(SAMPLE), "-o", str(inputs / "painted.png")],
+        base="suggest", outputs=("painted.png", "painted.json"),
+    ),  # fmt: skip
+    Stage(
+        "report", lambda ws, inputs: ["report", str(ws), "--test", str(SAMPLE / "test"), "-o", str(inputs / "report")],
+        base="refine", refreshes=("eval/000", "eval/001"), outputs=tuple(f"report/{name}" for name in REPORT_FILES),
+    ),  # fmt: skip
     Stage("train-initial --force", _train("--force"), base="refine", expected="train-initial"),
 ]
 STAGES_BY_NAME = {stage.name: stage for stage in STAGES}
@@ -402,7 +415,9 @@ class Harness:
             problems.append(f"left after the next command: {leftovers}")
         now = snapshot(workspace)
         reference = self.reference(stage.expected or stage.name)
-        if now == before or _old_but_refreshed(stage, now, before, reference.after):
+        if now == before and reference.after == reference.before and status == 0:
+            outcome.state = "new"  # a stage whose result is its outputs alone (checked below) finished
+        elif now == before or _old_but_refreshed(stage, now, before, reference.after):
             outcome.state = "old"
         elif self._is_new_state(stage, now, before, reference, problems):
             damage = self.check_workspace(workspace, folder)
@@ -416,6 +431,7 @@ class Harness:
             problems.append(f"{outcome.signal} before the stage started was ignored: it ran to the end")
         if outcome.signal != "SIGKILL" and not _interrupt_status(outcome):
             problems.append(f"exit status {status} after {outcome.signal}")
+        problems.extend(_output_problems(stage, folder / "inputs", outcome))
 
     def _is_new_state(self, stage: Stage, now: dict[str, str], before: dict[str, str], reference: Reference, problems: list[str]) -> bool:
         if set(now) != set(reference.after):
@@ -456,18 +472,54 @@ class Harness:
         return problems
 
 
+def _output_problems(stage: Stage, inputs: Path, outcome: Outcome) -> list[str]:
+    """What is wrong with the stage's outputs outside the workspace after a kill (see `Stage.outputs`)."""
+    problems = []
+    for name in stage.outputs:
+        path = inputs / name
+        if outcome.exit_status == 0 and not path.is_file():
+            problems.append(f"exit status 0 but {name} is missing")
+        if path.is_file() and not _complete(path):
+            problems.append(f"{name} is incomplete")
+        hidden = sorted(p.name for p in path.parent.glob(f".{path.stem}.tmp-*")) if path.parent.is_dir() else []
+        if hidden and outcome.signal != "SIGKILL":
+            problems.append(f"left beside the outputs: {hidden}")
+    return problems
+
+
+def _complete(path: Path) -> bool:
+    """Whether an output file reads back whole: an image, a video with a frame, a JSON object."""
+    try:
+        if path.suffix == ".png":
+            read_image(path)
+        elif path.suffix == ".json":
+            json.loads(path.read_text())
+        else:
+            capture = cv2.VideoCapture(str(path))
+            readable = capture.read()[0]
+            capture.release()
+            return readable
+    except Exception:  # noqa: BLE001 - any failure to read is the finding
+        return False
+    return True
+
+
 def _old_but_refreshed(stage: Stage, now: dict[str, str], before: dict[str, str], expected: dict[str, str]) -> bool:
-    """Whether `now` is the old state but for the stage's refreshed folder, which holds the reference's files."""
-    if stage.refreshes is None:
+    """Whether `now` is the old state but for some of the stage's refreshed folders, each holding the reference's files."""
+    if not stage.refreshes or now == expected:  # a stage whose result is its refreshed folders finished
         return False
 
-    def split(files: dict[str, str]) -> tuple[dict[str, str], set[str]]:
-        """(the files outside the refreshed folder with their hashes, the paths inside it)"""
-        inside = {path for path in files if Path(path).parts[0] == stage.refreshes}
-        return {path: digest for path, digest in files.items() if path not in inside}, inside
+    def part(files: dict[str, str], folder: str | None) -> dict[str, str]:
+        """The files inside `folder` (None: outside every refreshed folder) with their hashes."""
+        return {path: digest for path, digest in files.items() if _refreshed_folder(stage, path) == folder}
 
-    (now_outside, now_inside), (before_outside, _), (_, expected_inside) = split(now), split(before), split(expected)
-    return now_outside == before_outside and now_inside == expected_inside
+    if part(now, None) != part(before, None):
+        return False
+    return all(part(now, folder) in (part(before, folder), part(expected, folder)) for folder in stage.refreshes)
+
+
+def _refreshed_folder(stage: Stage, path: str) -> str | None:
+    return next((folder for folder in stage.refreshes if Path(path).is_relative_to(folder)), None)
 
 
 def _difference(now: dict[str, str], before: dict[str, str], expected: dict[str, str]) -> str:
