@@ -14,7 +14,9 @@ from pathlib import Path
 # commands that take the workspace lock; any of their positional arguments may name the workspace
 # apply-edit --list reads the workspace without needing its lock
 READ_ONLY_OPTION = "--list"
-LOCKING_COMMANDS = frozenset({"train-initial", "visibility", "suggest", "apply-edit", "refine", "evaluate", "simulate-user", "report"})
+LOCKING_COMMANDS = frozenset(
+    {"train-initial", "visibility", "suggest", "apply-edit", "refine", "evaluate", "simulate-user", "report", "loop"}
+)
 
 
 def main() -> None:

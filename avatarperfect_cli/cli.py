@@ -403,6 +403,43 @@ def refine(
         stage.refine(workspace, settings)
 
 
+@app.command("loop")
+@_one_line_errors
+def loop(
+    workspace: Path = typer.Argument(..., help="Workspace folder."),
+    rounds: int = typer.Option(5, help="Rounds of suggest, paint, apply-edit and refine."),
+    editor: Optional[str] = typer.Option(
+        None, "--editor", help="Command that opens the image to paint each round (the file is appended), e.g. 'gimp' or 'krita'."
+    ),
+    painted: Optional[Path] = typer.Option(
+        None, "--painted", help="The file you save your painting as, each round [default: any new image in the suggestion's folder]."
+    ),
+    iterations: int = typer.Option(500, help="Training steps of each refine."),
+    starts: int = typer.Option(3, help="Optimisation starts of each suggest."),
+    steps: int = typer.Option(30, help="Optimisation steps per start of each suggest."),
+    resolution: int = typer.Option(128, help="Longest image side while suggest optimises, pixels."),
+    seed: int = typer.Option(0, help="Seed of suggest and refine."),
+    device: str = typer.Option("auto", help=DEVICE_HELP),
+) -> None:
+    """Rounds of the loop for a person at an image editor: suggest, wait for the painting, register it, refine."""
+    import sys
+
+    from avatarperfect_cli.devices import resolve_device
+    from avatarperfect_cli.refinement.additional_training import RefineSettings
+    from avatarperfect_cli.refinement.suggest import SuggestConfig
+    from avatarperfect_cli.stages.loop import LoopSettings
+    from avatarperfect_cli.stages.loop import loop as run
+    from avatarperfect_cli.stages.suggest import SuggestSettings
+
+    torch_device = resolve_device(device)
+    search = SuggestConfig(starts=starts, steps=steps, resolution=resolution, seed=seed)
+    settings = LoopSettings(
+        rounds, editor, painted, SuggestSettings(search, device=torch_device),
+        RefineSettings(iterations=iterations, seed=seed, device=torch_device),
+    )  # fmt: skip
+    run(workspace, settings, keys=sys.stdin)
+
+
 @app.command("simulate-user")
 @_one_line_errors
 def simulate_user(

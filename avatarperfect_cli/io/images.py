@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 from typing import Literal
 
@@ -73,3 +74,22 @@ def write_image(path: Path | str, image: torch.Tensor) -> None:
     array = (pixels.clamp(0.0, 1.0) * 255.0).round().to(torch.uint8).numpy()
     with atomic_path(path) as temporary:
         Image.fromarray(array[..., 0] if array.shape[2] == 1 else array).save(temporary)
+
+
+_ENDINGS = {".png": b"IEND\xaeB`\x82", ".jpg": b"\xff\xd9", ".jpeg": b"\xff\xd9"}  # what a whole file ends with
+
+
+def whole_image(path: Path | str) -> bool:
+    """Whether `path` holds a whole image now: a PNG or JPEG ends as its format ends (IEND chunk, EOI marker),
+    and every image decodes to its last pixel. False for a file an editor is still writing."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+        ending = _ENDINGS.get(path.suffix.lower())
+        if ending is not None and not data.rstrip(b"\x00").endswith(ending):
+            return False
+        with Image.open(io.BytesIO(data)) as image:
+            image.load()
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError):
+        return False
+    return True

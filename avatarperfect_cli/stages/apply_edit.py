@@ -34,6 +34,10 @@ from avatarperfect_cli.stages.workspace_data import EDITS, applied_edits, latest
 WHITE = torch.ones(3)
 
 
+class UnchangedImage(AvatarPerfectError):
+    """The painted image equals what it was painted over: there is no edit to register."""
+
+
 @dataclass
 class EditSource:
     """What the user painted over: the image (H, W, 3) in [0, 1], its pose, and where they came from."""
@@ -78,9 +82,11 @@ def register_edit(workspace: Workspace, edited: Path, source: EditSource, masks:
 
 
 def apply_edit(
-    workspace_root: Path, edited: Path, pose: Path | None = None, mask: Path | None = None, progress: bool = True
-) -> Path:
-    """Register the painted image `edited` (see the module doc); returns the edit's folder."""
+    workspace_root: Path, edited: Path, pose: Path | None = None, mask: Path | None = None, progress: bool = True,
+    hint: bool = True,
+) -> Path:  # fmt: skip
+    """Register the painted image `edited` (see the module doc); returns the edit's folder. hint: print the
+    command to run next."""
     console = Console(stderr=True, quiet=not progress)
     with locked_workspace(workspace_root) as workspace:
         source = edit_source(workspace, pose)
@@ -97,14 +103,15 @@ def apply_edit(
         user_mask = None if mask is None else read_user_mask(mask, (height, width))
         masks = derive_edit_masks(painted, source.image, user_mask=user_mask)
         if not masks.edit.any():
-            raise AvatarPerfectError(f"{edited}: no pixel differs from {source.origin}; nothing to register")
+            raise UnchangedImage(f"{edited}: no pixel differs from {source.origin}; nothing to register")
         folder = register_edit(workspace, Path(edited), source, masks)
     counts = masks.counts()
     console.print(
         f"registered edit {folder.name} over {source.origin}: {counts['edited']:,} pixels "
         f"({counts['background']:,} background, {counts['colour']:,} colour)"
     )
-    console.print(f"next: avatarperfect refine {workspace_root}", highlight=False)
+    if hint:
+        console.print(f"next: avatarperfect refine {workspace_root}", highlight=False)
     return folder
 
 

@@ -51,8 +51,9 @@ class SuggestSettings:
     device: torch.device = CPU
 
 
-def suggest(workspace_root: Path, settings: SuggestSettings | None = None, progress: bool = True) -> Path:
-    """Suggest the next view for the workspace's current avatar; returns the new suggestion folder."""
+def suggest(workspace_root: Path, settings: SuggestSettings | None = None, progress: bool = True, hint: bool = True) -> Path:
+    """Suggest the next view for the workspace's current avatar; returns the new suggestion folder. hint: print
+    what to do next."""
     settings = settings or SuggestSettings()
     if settings.search.starts < 1 or settings.search.steps < 0 or settings.search.resolution < 16:
         raise AvatarPerfectError("suggest needs --starts >= 1, --steps >= 0 and --resolution >= 16")
@@ -91,8 +92,9 @@ def suggest(workspace_root: Path, settings: SuggestSettings | None = None, progr
         f"suggestion {folder.name}: objective {suggestion.objective:.1f}, camera azimuth {summary['azimuth_deg']:.0f}°, "
         f"elevation {summary['elevation_deg']:.0f}° ({summary['seconds']:.1f} s)"
     )
-    console.print(f"next: paint {folder / 'suggested.png'} (see guide.png for where to look), save it, then run")
-    console.print(f"  avatarperfect apply-edit {workspace_root} EDITED.png", highlight=False)
+    if hint:
+        console.print(f"next: paint {folder / 'suggested.png'} (see guide.png for where to look), save it, then run")
+        console.print(f"  avatarperfect apply-edit {workspace_root} EDITED.png", highlight=False)
     return folder
 
 

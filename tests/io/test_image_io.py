@@ -6,7 +6,7 @@ import torch
 from PIL import Image
 
 from avatarperfect_cli.errors import InputFileError
-from avatarperfect_cli.io.images import read_image, write_image
+from avatarperfect_cli.io.images import read_image, whole_image, write_image
 
 
 def pil_mode_and_pixels(path: Path) -> tuple[str, np.ndarray]:
@@ -110,3 +110,18 @@ def test_bad_file_gives_input_file_error(tmp_path: Path, case: str) -> None:
         read_image(path)
     message = str(caught.value)
     assert "edited.png" in message and problem in message and "\n" not in message
+
+
+@pytest.mark.parametrize("suffix", [".png", ".jpg", ".webp"])
+def test_whole_image_is_false_for_every_cut_of_a_save(tmp_path: Path, suffix: str) -> None:
+    """A file cut anywhere (an editor still writing it) is not whole; the complete file is."""
+    path = tmp_path / f"painted{suffix}"
+    write_image(path, torch.rand(24, 32, 3, generator=torch.Generator().manual_seed(0)))
+    data = path.read_bytes()
+    assert whole_image(path)
+    for cut in range(0, len(data), max(1, len(data) // 40)):
+        path.write_bytes(data[:cut])
+        assert not whole_image(path), f"{cut} of {len(data)} bytes"
+    path.write_bytes(data[:-1])
+    assert not whole_image(path)
+    assert not whole_image(tmp_path / "missing.png")

@@ -16,6 +16,8 @@ state and times the kills. What a kill must leave (`Harness.check`):
   avatar loading, the current one rendering with `render --pose`, every registered edit complete).
   A stage that first brings derived data up to date in a commit of its own (refine refreshes the visibility
   record) may also leave the old state with that folder refreshed (`Stage.refreshes`); it counts as old.
+  A command that runs several stages one after another (loop) may also leave the workspace after some of them
+  (`Stage.steps`): "partial".
 Anything else is "lost".
 
 Kill moments, one phase drawn per kill:
@@ -69,9 +71,9 @@ EDIT_FILES = {"target.png", "mask.png", "background.png", "pose.json", "edit.jso
 WS = "ws"  # the workspace's name inside its private folder ("box"), which holds nothing else
 
 
-def invoke(*args: object):
-    """The CLI in-process (typer's CliRunner)."""
-    return CliRunner().invoke(app, [str(a) for a in args])
+def invoke(*args: object, input: str | None = None):
+    """The CLI in-process (typer's CliRunner), reading `input` on stdin."""
+    return CliRunner().invoke(app, [str(a) for a in args], input=input)
 
 
 def snapshot(root: Path) -> dict[str, str]:
@@ -102,7 +104,10 @@ class Stage:
     refreshes: folders of derived data (e.g. "visibility") that the stage brings up to date, each in a commit of
     its own, before its result: the old workspace with any of them as the reference left it also counts as old;
     outputs: the files the stage writes outside the workspace (relative to `inputs`): after a kill each is absent
-    or complete, and only SIGKILL may leave a hidden temporary beside them."""
+    or complete, and only SIGKILL may leave a hidden temporary beside them; steps: the folders a command running
+    several stages (loop) completes one after another before its result: a kill may leave each as before or with
+    the reference's files (contents free: they hold timings) and the rest as before ("partial"); stdin: what the
+    process reads on its standard input (None: nothing)."""
 
     name: str
     prepare: Callable[[Path, Path], list[str]]
@@ -110,6 +115,8 @@ class Stage:
     expected: str | None = None
     refreshes: tuple[str, ...] = ()
     outputs: tuple[str, ...] = ()
+    steps: tuple[str, ...] = ()
+    stdin: str | None = None
 
 
 def _train(*extra: str) -> Callable[[Path, Path], list[str]]:
@@ -155,6 +162,10 @@ STAGES: list[Stage] = [
         base="refine", refreshes=("eval/000", "eval/001"), outputs=tuple(f"report/{name}" for name in REPORT_FILES),
     ),  # fmt: skip
     Stage("train-initial --force", _train("--force"), base="refine", expected="train-initial"),
+    Stage(
+        "loop", lambda ws, inputs: ["loop", str(ws), "--rounds", "1", "--iterations", "5", *FAST_SUGGEST],
+        base="train-initial", steps=("visibility", "suggestions"), stdin="s\n",
+    ),  # fmt: skip
 ]
 STAGES_BY_NAME = {stage.name: stage for stage in STAGES}
 
@@ -201,8 +212,8 @@ def summarise(outcomes: list[Outcome]) -> dict:
 def markdown_table(results: dict[str, dict]) -> str:
     """The counts of `summarise` per stage as a markdown table (for docs/reliability.md)."""
     lines = [
-        "| stage | signal | kills | in a save | old state | new state | lost | exit statuses |",
-        "|---|---|---:|---:|---:|---:|---:|---|",
+        "| stage | signal | kills | in a save | old state | after some steps | new state | lost | exit statuses |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---|",
     ]
     for stage, summary in results.items():
         if "by_signal" not in summary:
@@ -211,7 +222,7 @@ def markdown_table(results: dict[str, dict]) -> str:
             states = counts["states"]
             statuses = ", ".join(f"{status}: {count}" for status, count in counts["exit_statuses"].items())
             lines.append(
-                f"| {stage} | {name} | {counts['kills']} | {counts['phases'].get('save', 0)} | {states.get('old', 0)} | {states.get('new', 0)} "
+                f"| {stage} | {name} | {counts['kills']} | {counts['phases'].get('save', 0)} | {states.get('old', 0)} | {states.get('partial', 0)} | {states.get('new', 0)} "
                 f"| {states.get('lost', 0)} | {statuses} |"
             )
     return "\n".join(lines)
@@ -284,7 +295,7 @@ class Harness:
             before = snapshot(workspace)
             start = time.perf_counter()
             with save_delay(SAVE_DELAY):
-                result = invoke(*argv)
+                result = invoke(*argv, input=stage.stdin)
             seconds = time.perf_counter() - start
             assert result.exit_code == 0, f"reference run of {name} failed: {result.output}"
             assert invoke("apply-edit", workspace, "--list").exit_code == 0
@@ -347,8 +358,12 @@ class Harness:
         with open(folder / "stderr.txt", "wb") as err:
             process = subprocess.Popen(
                 [sys.executable, "-m", "avatarperfect_cli", *argv], stdout=subprocess.DEVNULL, stderr=err,
+                stdin=subprocess.DEVNULL if stage.stdin is None else subprocess.PIPE,
                 env={**os.environ, SAVE_DELAY_VARIABLE: str(SAVE_DELAY)}, preexec_fn=default_sigint,
             )  # fmt: skip
+        if process.stdin is not None:
+            process.stdin.write(stage.stdin.encode())
+            process.stdin.close()
         return process, workspace, before
 
     def _finish(
@@ -419,6 +434,10 @@ class Harness:
             outcome.state = "new"  # a stage whose result is its outputs alone (checked below) finished
         elif now == before or _old_but_refreshed(stage, now, before, reference.after):
             outcome.state = "old"
+        elif _after_some_steps(stage, now, before, reference.after):
+            damage = self.check_workspace(workspace, folder)
+            problems.extend(damage)
+            outcome.state = "lost" if damage else "partial"
         elif self._is_new_state(stage, now, before, reference, problems):
             damage = self.check_workspace(workspace, folder)
             problems.extend(damage)
@@ -511,15 +530,30 @@ def _old_but_refreshed(stage: Stage, now: dict[str, str], before: dict[str, str]
 
     def part(files: dict[str, str], folder: str | None) -> dict[str, str]:
         """The files inside `folder` (None: outside every refreshed folder) with their hashes."""
-        return {path: digest for path, digest in files.items() if _refreshed_folder(stage, path) == folder}
+        return {path: digest for path, digest in files.items() if _folder_of(path, stage.refreshes) == folder}
 
     if part(now, None) != part(before, None):
         return False
     return all(part(now, folder) in (part(before, folder), part(expected, folder)) for folder in stage.refreshes)
 
 
-def _refreshed_folder(stage: Stage, path: str) -> str | None:
-    return next((folder for folder in stage.refreshes if Path(path).is_relative_to(folder)), None)
+def _folder_of(path: str, folders: tuple[str, ...]) -> str | None:
+    """The one of `folders` that holds `path`, or None."""
+    return next((folder for folder in folders if Path(path).is_relative_to(folder)), None)
+
+
+def _after_some_steps(stage: Stage, now: dict[str, str], before: dict[str, str], expected: dict[str, str]) -> bool:
+    """Whether `now` is the old state but for some of the stage's step folders, each holding the reference's file names."""
+    if not stage.steps:
+        return False
+
+    def names(files: dict[str, str], folder: str | None) -> set[str]:
+        return {path for path in files if _folder_of(path, stage.steps) == folder}
+
+    outside = {path: digest for path, digest in now.items() if path in names(now, None)}
+    if outside != {path: digest for path, digest in before.items() if path in names(before, None)}:
+        return False
+    return all(names(now, folder) in (names(before, folder), names(expected, folder)) for folder in stage.steps)
 
 
 def _difference(now: dict[str, str], before: dict[str, str], expected: dict[str, str]) -> str:
