@@ -118,6 +118,44 @@ def figure_png(figure, title: str) -> bytes:
     return buffer.getvalue()
 
 
+def labelled_grid(rows: list[list[torch.Tensor | None]], row_labels: list[str], column_labels: list[str]):
+    """A matplotlib figure of images in a grid: `column_labels` above the first row, `row_labels` left of each row.
+
+    rows: per row, one (H, W, 3) image in [0, 1] per column, or None for an empty panel ("not yet")."""
+    from matplotlib import pyplot as plt
+
+    height, width = next(image.shape[:2] for row in rows for image in row if image is not None)
+    panel = 2.2  # inches per panel side at the wider of H and W
+    size = (panel * width / max(height, width), panel * height / max(height, width))
+    figsize = (size[0] * len(column_labels) + 1.2, size[1] * len(rows) + 0.8)
+    figure, axes = plt.subplots(len(rows), len(column_labels), figsize=figsize, squeeze=False)
+    for r, (row, label) in enumerate(zip(rows, row_labels)):
+        for c, image in enumerate(row):
+            axis = axes[r, c]
+            axis.set_xticks([])
+            axis.set_yticks([])
+            if image is None:
+                axis.text(0.5, 0.5, "not yet", ha="center", va="center", color="grey", transform=axis.transAxes)
+            else:
+                axis.imshow(image.clamp(0, 1).numpy(), interpolation="nearest")
+            if r == 0:
+                axis.set_title(column_labels[c], fontsize=11)
+        axes[r, 0].set_ylabel(label, fontsize=11)
+    return figure
+
+
+def caption_strip(labels: list[str], panel_width: int) -> torch.Tensor:
+    """(h, len(labels) * panel_width, 3) in [0, 1]: white, each label centred above its panel, the text as large
+    as the widest label allows (at most 0.8) and h to match, so small videos keep readable captions."""
+    widest = max(cv2.getTextSize(label, FONT, 1.0, 1)[0][0] for label in labels)
+    scale = min(0.8, 0.92 * panel_width / max(widest, 1))
+    height = 2 * round(14 * scale / 0.6 + 2)  # even: video encoders want even sides
+    canvas = np.full((height, len(labels) * panel_width, 3), 255, np.uint8)
+    for index, label in enumerate(labels):
+        _text(canvas, label, index * panel_width + panel_width // 2, int(height * 0.7), scale)
+    return torch.from_numpy(canvas.astype(np.float32) / 255.0)
+
+
 def guide_image(image: torch.Tensor, dominated: torch.Tensor) -> torch.Tensor:
     """(H, W, 3) the suggested image with the pixels dominated by barely-seen Gaussians tinted and outlined.
 

@@ -389,10 +389,16 @@ def test_simulate_user_refuses_a_real_dataset(workspace: Path, tmp_path: Path):
     assert "not a synthetic subject" in one_line_error(invoke("simulate-user", workspace, "--subject", real))
 
 
-def test_two_rounds_of_the_loop_and_the_report(workspace: Path, tmp_path: Path):
-    """What `make demo` runs, small: rounds of visibility, suggest, simulated painting, apply-edit, refine."""
-    painted = tmp_path / "painted.png"
-    for _ in range(2):
+def test_two_rounds_of_the_loop_and_the_report(workspace: Path, tmp_path: Path, monkeypatch):
+    """What `make demo` runs, small: rounds of visibility, suggest, simulated painting, apply-edit, refine; the
+    report's suggestion sheet has a titled column per image and a labelled row per round."""
+    from avatarperfect_cli.stages import report as report_stage
+
+    grids = []
+    original_grid = report_stage.labelled_grid
+    monkeypatch.setattr(report_stage, "labelled_grid", lambda *args: grids.append(args) or original_grid(*args))
+    for round_number in range(2):
+        painted = tmp_path / f"painted{round_number}.png"  # simulate-user -o writes a new file
         for command in (
             ("visibility", workspace),
             ("suggest", workspace, *FAST_SUGGEST),
@@ -411,7 +417,11 @@ def test_two_rounds_of_the_loop_and_the_report(workspace: Path, tmp_path: Path):
         metrics = json.loads((workspace / "eval" / f"{iteration:03d}" / "test" / "metrics.json").read_text())["mean"]
         assert all(np.isfinite(value) for value in metrics.values())
     sheet = read_image(report / "suggestions.png")
-    assert sheet.shape[:2] == (2 * 64, 4 * 64)
+    assert sheet.shape[0] > 2 * 64 and sheet.shape[1] > 5 * 64
+    (rows, row_labels, column_labels), = grids
+    assert column_labels == ["suggested", "guide: barely seen", "painted", "edit mask", "result after refine"]
+    assert row_labels == ["round 1\nedit 001, avatar 001", "round 2\nedit 002, avatar 002"]
+    assert all(len(row) == 5 and row[4] is not None for row in rows)
 
 
 @pytest.mark.parametrize(
