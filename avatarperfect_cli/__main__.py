@@ -15,7 +15,7 @@ from pathlib import Path
 # apply-edit --list reads the workspace without needing its lock
 READ_ONLY_OPTION = "--list"
 LOCKING_COMMANDS = frozenset(
-    {"train-initial", "visibility", "suggest", "apply-edit", "refine", "evaluate", "simulate-user", "report", "loop"}
+    {"train-initial", "visibility", "suggest", "apply-edit", "refine", "evaluate", "simulate-user", "report", "loop", "relink"}
 )
 
 

@@ -440,6 +440,18 @@ def loop(
     run(workspace, settings, keys=sys.stdin)
 
 
+@app.command("relink")
+@_one_line_errors
+def relink(
+    workspace: Path = typer.Argument(..., help="Workspace folder."),
+    dataset: Path = typer.Argument(..., help="The workspace's training video in its new place (People-Snapshot layout)."),
+) -> None:
+    """Point a workspace at its moved training video, after checking it is the same video (frames, size, content)."""
+    from avatarperfect_cli.stages.relink import relink as run
+
+    run(workspace, dataset)
+
+
 @app.command("simulate-user")
 @_one_line_errors
 def simulate_user(

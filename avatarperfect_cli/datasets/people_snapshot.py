@@ -32,6 +32,7 @@ Which pose row belongs to which frame:
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -627,3 +628,29 @@ def _move_into_place(staging: Path, root: Path) -> None:
         raise
     finally:
         shutil.rmtree(previous, ignore_errors=True)
+
+
+@dataclass(frozen=True)
+class VideoFingerprint:
+    """What tells a video folder from another: its frame count (images/image_%04d.png), the camera's image size
+    in pixels, and the SHA-256 over cameras.npz and every frame's image bytes in frame order (None: not hashed)."""
+
+    frames: int
+    width: int
+    height: int
+    sha256: str | None = None
+
+
+def video_fingerprint(root: Path, content: bool = True) -> VideoFingerprint:
+    """The fingerprint of the People-Snapshot folder `root`; `content` False leaves out the hash (no image is read)."""
+    root = Path(root)
+    frames = _available_frames(root / "images")
+    camera = read_dataset_camera(root)
+    digest = None
+    if content:
+        sha = hashlib.sha256((root / "cameras.npz").read_bytes())
+        for frame in frames:
+            sha.update((root / "images" / f"image_{frame:04d}.png").read_bytes())
+        digest = sha.hexdigest()
+    return VideoFingerprint(len(frames), camera.width, camera.height, digest)
+

@@ -1,6 +1,7 @@
 """The workspace folder that every stage reads and writes, and its manifest `workspace.json`.
 
-    ws/workspace.json        manifest: dataset, body model, camera, settings, iteration, history
+    ws/workspace.json        manifest: dataset (relative to the workspace where possible) and its fingerprint,
+                             body model, camera, settings, iteration, history
     ws/avatar/000.ply        avatar after each iteration (000 = train-initial)
     ws/visibility/000.npy    accumulated per-Gaussian visibility
     ws/suggest/001/          suggested pose.json, render.png, guide.png
@@ -90,6 +91,23 @@ class Workspace:
         existing = [int(p.name) for p in self.numbered_folders(kind)]
         return self.root / kind / f"{max(existing, default=0) + 1:03d}"
 
+    def dataset(self) -> Path:
+        """The training video's folder: the manifest's "dataset" (relative to the workspace unless absolute), or
+        where it is missing, "dataset_absolute" when that folder is there (a workspace copied without its video)."""
+        relative = self.root / str(self.manifest.get("dataset", ""))
+        absolute = Path(str(self.manifest.get("dataset_absolute", "")))
+        return absolute if not relative.is_dir() and absolute.is_absolute() and absolute.is_dir() else relative
+
+    def set_dataset(self, dataset: Path) -> None:
+        """Record `dataset` in the manifest (to be committed): relative to the workspace where there is such a path
+        (another drive has none), and absolute."""
+        absolute = os.path.abspath(dataset)
+        try:
+            self.manifest["dataset"] = os.path.relpath(absolute, os.path.abspath(self.root))
+        except ValueError:
+            self.manifest["dataset"] = absolute
+        self.manifest["dataset_absolute"] = absolute
+
     def remove_uncommitted(self) -> None:
         """Delete avatar files a killed stage wrote but never committed to the manifest."""
         committed = self.committed_avatars()
@@ -125,6 +143,7 @@ _MANIFEST_TYPES: dict[str, tuple[tuple, str]] = {
     "poses": ((str, None), "a string or null"), "transl_offset": (("numbers",), "a list of numbers"),
     "downscale": _COUNT, "camera": _OBJECT, "body_model": _OBJECT, "reference_pose": _OBJECT,
     "refined_poses": ((str, None), "a string or null"), "history": ((list,), "a list of objects"),
+    "dataset_fingerprint": _OBJECT, "dataset_absolute": _TEXT,
 }  # fmt: skip
 _HISTORY_TYPES: dict[str, tuple[tuple, str]] = {
     "stage": _TEXT, "avatar": _COUNT, "from": _COUNT, "edits": (("counts",), "a list of non-negative integers"),

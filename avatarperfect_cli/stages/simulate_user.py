@@ -46,7 +46,7 @@ def simulate_user(
         check_painting_output(Path(output), Path(workspace_root), force)
     with locked_workspace(workspace_root) as workspace:
         folder = latest_suggestion(workspace)
-        source = subject_folder(subject) if subject is not None else Path(str(workspace.manifest.get("dataset", "")))
+        source = subject_folder(subject) if subject is not None else workspace.dataset()
         truth_model = SyntheticSubject.from_dataset(source)
         pose = read_pose(folder / "pose.json")
         suggested = read_image(folder / "suggested.png", "RGB")

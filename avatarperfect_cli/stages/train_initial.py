@@ -12,7 +12,7 @@ from rich.console import Console
 
 from avatarperfect_cli.avatar.model import Avatar
 from avatarperfect_cli.body import BodyTemplate, load_body_template
-from avatarperfect_cli.datasets import FrameRange, VideoDataset, load_people_snapshot, read_dataset_camera
+from avatarperfect_cli.datasets import FrameRange, VideoDataset, load_people_snapshot, read_dataset_camera, video_fingerprint
 from avatarperfect_cli.devices import CPU
 from avatarperfect_cli.errors import AvatarPerfectError
 from avatarperfect_cli.io.atomic import atomic_path
@@ -174,6 +174,7 @@ def _train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool,
     seconds = time.perf_counter() - start
     manifest = {
         "dataset": str(Path(dataset).resolve()),
+        "dataset_fingerprint": asdict(video_fingerprint(dataset)),
         "frames": None if fit.video.frames is None else asdict(fit.video.frames),
         "poses": video.pose_file,
         "transl_offset": offset.tolist(),
@@ -187,6 +188,7 @@ def _train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool,
     if refiner is not None:
         manifest["refined_poses"] = REFINED_POSES
     with new_workspace(workspace, manifest, force) as staged:
+        staged.set_dataset(dataset)  # relative to the staging folder, a sibling of `workspace`: the same path
         avatar.save(staged.avatar_path(0))
         if refiner is not None:
             body_pose, transl = refiner.refined(video.body_pose, video.transl)

@@ -66,9 +66,13 @@ def load_video(workspace: Workspace, with_images: bool = True) -> VideoDataset:
     translations moved by the workspace's offset, with the refined poses where `train-initial
     --refine-poses` saved them; one line naming the manifest if the dataset moved."""
     manifest = workspace.manifest
-    dataset = Path(str(manifest.get("dataset", "")))
+    dataset = workspace.dataset()
     if not dataset.is_dir():
-        raise InputFileError(workspace.root / MANIFEST, f"its dataset {dataset} is missing (moved or deleted?)")
+        raise InputFileError(
+            workspace.root / MANIFEST,
+            f"its dataset {dataset} is missing (moved or deleted?); point the workspace at it with "
+            f"'avatarperfect relink {workspace.root} DATASET'",
+        )
     frames = manifest.get("frames")
     frame_range = None if frames is None else FrameRange(**frames)
     poses = manifest.get("poses")  # absent in workspaces from before it was recorded: the loader's old choice

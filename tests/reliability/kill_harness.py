@@ -162,6 +162,7 @@ STAGES: list[Stage] = [
         base="refine", refreshes=("eval/000", "eval/001"), outputs=tuple(f"report/{name}" for name in REPORT_FILES),
     ),  # fmt: skip
     Stage("train-initial --force", _train("--force"), base="refine", expected="train-initial"),
+    Stage("relink", lambda ws, inputs: ["relink", str(ws), str(SAMPLE / "train")], base="train-initial"),
     Stage(
         "loop", lambda ws, inputs: ["loop", str(ws), "--rounds", "1", "--iterations", "5", *FAST_SUGGEST],
         base="train-initial", steps=("visibility", "suggestions"), stdin="s\n",

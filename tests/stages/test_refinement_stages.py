@@ -140,11 +140,11 @@ def test_new_edits_update_the_stored_visibility_with_the_edit_views_alone(worksp
 
 def test_missing_dataset_is_one_line(workspace: Path):
     manifest = json.loads((workspace / "workspace.json").read_text())
-    manifest["dataset"] = str(workspace / "moved-away")
+    manifest["dataset"] = manifest["dataset_absolute"] = str(workspace / "moved-away")
     (workspace / "workspace.json").write_text(json.dumps(manifest))
     before = snapshot(workspace)
     message = one_line_error(invoke("visibility", workspace))
-    assert "moved-away" in message and "workspace.json" in message
+    assert "moved-away" in message and "workspace.json" in message and "avatarperfect relink" in message
     assert snapshot(workspace) == before
 
 
