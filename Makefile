@@ -25,9 +25,12 @@ test: install
 # RESOLUTION: the sample's image side (benchmarks/study.py measures the loop at 512²).
 ROUNDS ?= 5
 RESOLUTION ?= 256
+# BODY_SHAPE: fit (the body fitted to the masks from anny's middle phenotype, what a user gets) or exact
+# (the sample's own body, the best case).
+BODY_SHAPE ?= fit
 demo: install
 	$(BIN)/avatarperfect make-sample $(DEMO)/sample --resolution $(RESOLUTION)
-	$(BIN)/avatarperfect train-initial $(DEMO)/sample/train $(DEMO)/ws --force
+	$(BIN)/avatarperfect train-initial $(DEMO)/sample/train $(DEMO)/ws --force --body-shape $(BODY_SHAPE)
 	for round in $$(seq $(ROUNDS)); do \
 	  echo "== round $$round of $(ROUNDS)"; \
 	  $(BIN)/avatarperfect visibility $(DEMO)/ws && \

@@ -6,6 +6,7 @@ Heavy modules (torch, numba) are imported inside the commands so that `--help` s
 from __future__ import annotations
 
 import functools
+import math
 import signal
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Optional, TypeVar
@@ -107,6 +108,26 @@ def _require_in_range(option: str, value: float | None, low: float, high: float 
         raise AvatarPerfectError(f"{option} must be {allowed}, got {value}")
 
 
+def _phenotype(text: str | None) -> dict[str, float] | None:
+    """'NAME=VALUE,...' -> {NAME: VALUE}, checked against anny's phenotypes; None stays None."""
+    if text is None:
+        return None
+    from avatarperfect_cli.body.anny_model import full_phenotype
+    from avatarperfect_cli.errors import AvatarPerfectError
+
+    values = {}
+    for item in text.split(","):
+        name, equals, value = item.partition("=")
+        try:
+            values[name.strip()] = float(value) if equals else math.nan
+        except ValueError:
+            values[name.strip()] = math.nan
+        if not math.isfinite(values[name.strip()]):
+            raise AvatarPerfectError(f"--body '{text}': '{item}' is not NAME=VALUE with a number")
+    full_phenotype(values)
+    return values
+
+
 @app.command("make-sample")
 @_one_line_errors
 def make_sample(
@@ -116,6 +137,10 @@ def make_sample(
     seed: int = typer.Option(0, help="Seed; the same seed gives byte-identical files."),
     train_frames: int = typer.Option(100, help="Frames of the training video (a 360° turn)."),
     test_frames: int = typer.Option(30, help="Frames of the held-out test video."),
+    body: Optional[str] = typer.Option(
+        None, help="Another anny body for the preset's clothes: NAME=VALUE,... over gender, age, muscle, weight, "
+        "height and proportions, each in [0, 1], missing ones 0.5 (e.g. 'height=0.65,weight=0.25')."
+    ),  # fmt: skip
 ) -> None:
     """Make the synthetic sample subject (anny body, procedural clothes) in the People-Snapshot layout."""
     from avatarperfect_cli.io.camera_json import max_image_side
@@ -124,8 +149,9 @@ def make_sample(
     from avatarperfect_cli.sample.generate import make_sample as make
 
     _require_in_range("--resolution", resolution, MIN_RESOLUTION, max_image_side())
+    phenotype = _phenotype(body)
     check_writable_folder(out_dir)
-    make(out_dir, preset, resolution, seed, train_frames, test_frames)
+    make(out_dir, preset, resolution, seed, train_frames, test_frames, phenotype)
 
 
 @app.command("prepare")
@@ -170,6 +196,11 @@ def train_initial(
         "auto", help="Added to the dataset's translations so the template lands on the subject: auto (fitted to the "
         "masks when the poses were fitted for another body, e.g. SMPL poses with anny), fit, off, or X,Y,Z metres.",
     ),  # fmt: skip
+    body_shape: str = typer.Option(
+        "auto", help="fit: fit the body (anny's phenotype, or SMPL's betas as given, and the skeleton) to the masks; "
+        "exact: the dataset's own body (a synthetic sample's subject.json, SMPL's betas); auto: exact when the "
+        "dataset names the template's body, else fit.",
+    ),  # fmt: skip
     sh_degree: int = typer.Option(1, help="Spherical-harmonics degree of the colours (0 to 3)."),
     seed: int = typer.Option(0, help="Random seed."),
     refine_poses: bool = typer.Option(False, "--refine-poses", help="Also refine each frame's SMPL pose (real videos)."),
@@ -180,7 +211,8 @@ def train_initial(
     from avatarperfect_cli.devices import resolve_device
     from avatarperfect_cli.io.outputs import check_writable_folder
     from avatarperfect_cli.sample.generate import MIN_RESOLUTION
-    from avatarperfect_cli.stages.train_initial import BodySettings, InitialFit, VideoSettings, parse_transl_offset
+    from avatarperfect_cli.errors import AvatarPerfectError
+    from avatarperfect_cli.stages.train_initial import BODY_SHAPES, BodySettings, InitialFit, VideoSettings, parse_transl_offset
     from avatarperfect_cli.stages.train_initial import train_initial as run
 
     torch_device = resolve_device(device)
@@ -188,7 +220,9 @@ def train_initial(
     _require_in_range("--resolution", resolution, MIN_RESOLUTION)
     _require_in_range("--sh-degree", sh_degree, 0, 3)
     check_writable_folder(workspace)
-    body = BodySettings(body_model, smpl_model_dir, parse_transl_offset(transl_offset))
+    if body_shape not in BODY_SHAPES:
+        raise AvatarPerfectError(f"--body-shape '{body_shape}' is not one of {', '.join(BODY_SHAPES)}")
+    body = BodySettings(body_model, smpl_model_dir, parse_transl_offset(transl_offset), body_shape)
     video = VideoSettings(_frame_range(frames), resolution, poses)
     fit = InitialFit(video, body, iterations, sh_degree, seed, refine_poses, torch_device)
     run(dataset, workspace, fit, force)

@@ -56,9 +56,9 @@ from avatarperfect_cli.stages.apply_edit import apply_edit, erase_region
 from avatarperfect_cli.stages.refine import RefineSettings, refine
 from avatarperfect_cli.stages.simulate_user import simulate_user
 from avatarperfect_cli.stages.suggest import SuggestSettings, suggest
-from avatarperfect_cli.stages.train_initial import InitialFit, VideoSettings, train_initial
+from avatarperfect_cli.stages.train_initial import BodySettings, InitialFit, VideoSettings, train_initial
 from avatarperfect_cli.stages.visibility import visibility
-from avatarperfect_cli.stages.workspace_data import reference_pose
+from avatarperfect_cli.stages.workspace_data import reference_pose, transl_offset
 from avatarperfect_cli.training import metrics
 
 WHITE = torch.ones(3)
@@ -110,14 +110,15 @@ def masked_psnr(render: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor) -
     return math.inf if mse == 0 else -10 * math.log10(mse)
 
 
-def score(avatar: Avatar, data: HeldOut) -> tuple[dict[str, float], list[torch.Tensor]]:
-    """Mean held-out metrics of `avatar`, and its renders of SHOWN_FRAMES."""
+def score(avatar: Avatar, data: HeldOut, offset: torch.Tensor) -> tuple[dict[str, float], list[torch.Tensor]]:
+    """Mean held-out metrics of `avatar`, and its renders of SHOWN_FRAMES; the held-out translations move by
+    the workspace's `offset` (3,) metres, as `evaluate` moves them."""
     rows, shown = [], []
     # squared error and values, over all frames' pixels together
     errors = {name: [0.0, 0] for name in ("hidden", "unseen", *HIDDEN_REGIONS)}
     with torch.no_grad():
         for t, pose in enumerate(data.poses):
-            out = render_avatar(avatar, pose.body_pose, pose.transl, pose.camera, WHITE)
+            out = render_avatar(avatar, pose.body_pose, pose.transl + offset, pose.camera, WHITE)
             render, truth = out.image.clamp(0, 1), data.images[t]
             box = torch.zeros_like(data.masks[t])
             rows_any, cols_any = data.masks[t].any(dim=1).nonzero(), data.masks[t].any(dim=0).nonzero()
@@ -139,10 +140,10 @@ def score(avatar: Avatar, data: HeldOut) -> tuple[dict[str, float], list[torch.T
     return mean, shown
 
 
-def training_psnr(avatar: Avatar, train: HeldOut) -> float:
+def training_psnr(avatar: Avatar, train: HeldOut, offset: torch.Tensor) -> float:
     with torch.no_grad():
         return statistics.fmean(
-            metrics.psnr(render_avatar(avatar, p.body_pose, p.transl, p.camera, WHITE).image.clamp(0, 1), train.images[t])
+            metrics.psnr(render_avatar(avatar, p.body_pose, p.transl + offset, p.camera, WHITE).image.clamp(0, 1), train.images[t])
             for t, p in enumerate(train.poses)
         )
 
@@ -169,7 +170,8 @@ def worst_orbit_region(ws: Path, subject: SyntheticSubject, scratch: Path) -> tu
         with torch.no_grad():
             out = render_avatar(avatar, pose.body_pose, pose.transl, pose.camera, WHITE)
         image = torch.round(out.image.clamp(0, 1) * 255) / 255
-        result = paint(image, out.alpha, subject.render(pose.body_pose, pose.transl, pose.camera), UserConfig())
+        truth = subject.render(pose.body_pose, pose.transl - transl_offset(workspace), pose.camera)
+        result = paint(image, out.alpha, truth, UserConfig())
         region = (result.stroke_weight >= 0.5) & (result.image >= 0.99).all(dim=-1) & (image < 0.99).any(dim=-1)
         if best is None or int(region.sum()) > best[0]:
             best = (int(region.sum()), pose, region)
@@ -214,7 +216,7 @@ def run_condition(name: str, initial: Path, out: Path, sample: Path, subject: Sy
             erase_region(ws, region, name.removeprefix("erase-"), pose, progress=False)
         round_seconds.append(time.perf_counter() - start - user_seconds)
         avatar = Avatar.load(open_workspace(ws).require_avatar())
-        train_drops.append(training_psnr(avatar, train) - base_train_psnr)
+        train_drops.append(training_psnr(avatar, train, transl_offset(open_workspace(ws))) - base_train_psnr)
         print(f"    {name} round {round_index + 1}: {round_seconds[-1]:.1f} s, training PSNR change {train_drops[-1]:+.3f} dB", flush=True)
     history = open_workspace(ws).manifest["history"]
     return {
@@ -226,7 +228,7 @@ def run_condition(name: str, initial: Path, out: Path, sample: Path, subject: Sy
 
 
 def run_subject(preset: str, out: Path, rounds: int, resolution: int, iterations: int, conditions: Sequence[str],
-                seed: int, images: Path | None) -> dict:  # fmt: skip
+                seed: int, images: Path | None, body: str = "fit") -> dict:  # fmt: skip
     """Every condition on the initial avatar of `seed`; writes the held-out picture to `images` (None: none)."""
     sample = out / "sample"
     if not (sample / "test" / "subject.json").is_file():
@@ -236,7 +238,7 @@ def run_subject(preset: str, out: Path, rounds: int, resolution: int, iterations
     initial = out / "initial-ws"
     if not (initial / "workspace.json").is_file():
         start = time.perf_counter()
-        fit = InitialFit(VideoSettings(), iterations=iterations, seed=seed)
+        fit = InitialFit(VideoSettings(), BodySettings(shape=body), iterations=iterations, seed=seed)
         train_initial(sample / "train", initial, fit, force=True, progress=False)
         print(f"  {preset} seed {seed}: initial avatar trained in {time.perf_counter() - start:.0f} s", flush=True)
     data = held_out(sample, 1)
@@ -244,11 +246,12 @@ def run_subject(preset: str, out: Path, rounds: int, resolution: int, iterations
     train = HeldOut(train_video.images, train_video.masks, torch.zeros(0), torch.zeros(0),
                     [PoseFile(train_video.body_pose[t], train_video.transl[t], train_video.camera) for t in range(len(train_video))])  # fmt: skip
     subject = SyntheticSubject.from_dataset(sample / "train")
-    base_train_psnr = training_psnr(Avatar.load(open_workspace(initial).require_avatar()), train)
+    offset = transl_offset(open_workspace(initial))
+    base_train_psnr = training_psnr(Avatar.load(open_workspace(initial).require_avatar()), train, offset)
     results, pictures = {}, {}
     for name in conditions:
         info = run_condition(name, initial, out, sample, subject, train, rounds, base_train_psnr, seed)
-        mean, shown = score(Avatar.load(open_workspace(info.pop("workspace")).require_avatar()), data)
+        mean, shown = score(Avatar.load(open_workspace(info.pop("workspace")).require_avatar()), data, offset)
         results[name] = {**mean, **info}
         pictures[name] = shown
         print(f"  {preset} seed {seed} {name}: PSNR {mean['psnr']:.2f} dB, hidden {mean['psnr_hidden']:.2f} dB, IoU {mean['iou']:.4f}", flush=True)
@@ -318,6 +321,9 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=2000)
     parser.add_argument("--conditions", nargs="+", default=list(CONDITIONS), choices=CONDITIONS)
     parser.add_argument("--seeds", nargs="+", type=int, default=[0], help="initial avatars per subject, one per seed")
+    parser.add_argument("--body", choices=("fit", "exact"), default="fit",
+                        help="the avatar's body: fitted to the masks from anny's middle phenotype (what a user gets), "
+                             "or the subject's own (the best case, a reference row)")  # fmt: skip
     args = parser.parse_args()
     if "initial" not in args.conditions:
         args.conditions.insert(0, "initial")  # the gains are measured from it
@@ -329,7 +335,7 @@ def main() -> None:
             print(f"subject {preset}, seed {seed}", flush=True)
             images = args.out / "images" if seed == args.seeds[0] else None
             all_results[preset][seed] = run_subject(preset, args.out / preset, args.rounds, args.resolution, args.iterations,
-                                                    args.conditions, seed, images)  # fmt: skip
+                                                    args.conditions, seed, images, args.body)  # fmt: skip
             (args.out / "study.json").write_text(json.dumps(all_results, indent=2))
     per_subject = {preset: combine(list(all_results[preset].values()), args.conditions) for preset in args.presets}
     mean = combine(list(per_subject.values()), args.conditions)

@@ -85,6 +85,10 @@ def test_bad_background_is_rejected(tmp_path: Path):
         (["make-sample", "{tmp}/sample", "--resolution", "1"], "--resolution must be from 16 to 8192, got 1"),
         (["make-sample", "{tmp}/sample", "--resolution", "30000"], "--resolution must be from 16 to 8192, got 30000"),
         (["suggest", "{tmp}/ws", "--exposure-poses", "-1"], "--exposure-poses must be at least 0, got -1"),
+        (["train-initial", "{tmp}/data", "{tmp}/ws", "--body-shape", "guess"], "--body-shape 'guess' is not one of auto, fit, exact"),
+        (["make-sample", "{tmp}/sample", "--body", "height=1.5"], "anny phenotype height=1.5 is outside [0, 1]"),
+        (["make-sample", "{tmp}/sample", "--body", "stature=0.5"], "unknown anny phenotype stature; known: gender, age, muscle, weight, height, proportions"),
+        (["make-sample", "{tmp}/sample", "--body", "height"], "--body 'height': 'height' is not NAME=VALUE with a number"),
     ],
 )
 def test_out_of_range_options_are_one_line(tmp_path: Path, arguments: list[str], problem: str):

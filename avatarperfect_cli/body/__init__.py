@@ -6,6 +6,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from avatarperfect_cli.body.base import NUM_JOINTS, SMPL_JOINT_NAMES, SMPL_PARENTS, BodyTemplate
 from avatarperfect_cli.body.skeleton import blend_transforms, forward_kinematics, matrix_to_quaternion, skin_gaussians, skin_points
 from avatarperfect_cli.errors import AvatarPerfectError
@@ -43,12 +45,22 @@ def load_body_template(
 
 def load_described_template(description: Mapping[str, Any], smpl_model_dir: Path | None = None) -> BodyTemplate:
     """The template an avatar's `body_model` metadata describes ({"name": "anny", "phenotype": {...}} or
-    {"name": "smpl", "betas": [...]}, as train-initial writes it); SMPL also needs `smpl_model_dir`."""
+    {"name": "smpl", "betas": [...]}, as train-initial writes it, with "bone_offsets" (24 x 3 metres) where
+    it corrected the skeleton); SMPL also needs `smpl_model_dir`."""
     if "name" not in description:
         raise AvatarPerfectError("the avatar does not name its body model (an avatar from before it was recorded)")
-    return load_body_template(
+    template = load_body_template(
         str(description["name"]), smpl_model_dir=smpl_model_dir, phenotype=description.get("phenotype"), betas=description.get("betas")
     )
+    if description.get("bone_offsets") is None:
+        return template
+    try:
+        bone_offsets = torch.tensor(description["bone_offsets"], dtype=torch.float32)
+    except (TypeError, ValueError):
+        bone_offsets = torch.empty(0)
+    if bone_offsets.shape != (NUM_JOINTS, 3) or not bone_offsets.isfinite().all():
+        raise AvatarPerfectError("the avatar's body_model 'bone_offsets' is not a 24 x 3 list of finite numbers")
+    return template.with_bone_offsets(bone_offsets)
 
 
 __all__ = [

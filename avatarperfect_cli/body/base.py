@@ -15,6 +15,17 @@ SMPL_JOINT_NAMES: tuple[str, ...] = (
     "left_hand", "right_hand",
 )  # fmt: skip
 NUM_JOINTS = 24
+# Left/right joint pairs of the SMPL tree (+X is the body's left).
+SMPL_MIRROR: tuple[int, ...] = (0, 2, 1, 3, 5, 4, 6, 8, 7, 9, 11, 10, 12, 14, 13, 15, 17, 16, 19, 18, 21, 20, 23, 22)
+
+
+def joint_displacements(bone_offsets: torch.Tensor) -> torch.Tensor:
+    """(..., 24, 3) how far each rest joint moves when every bone's offset from its parent joint changes by
+    `bone_offsets` (..., 24, 3) metres (the root's entry moves the whole body): the sum along its chain."""
+    displacements = [bone_offsets[..., 0, :]]
+    for joint in range(1, NUM_JOINTS):
+        displacements.append(displacements[SMPL_PARENTS[joint]] + bone_offsets[..., joint, :])
+    return torch.stack(displacements, dim=-2)
 
 
 @dataclass
@@ -35,3 +46,17 @@ class BodyTemplate:
     rest_joints: torch.Tensor
     uvs: torch.Tensor | None = None
     face_uvs: torch.Tensor | None = None
+
+    def with_bone_offsets(self, bone_offsets: torch.Tensor) -> BodyTemplate:
+        """The template with its skeleton corrected: each bone's offset from its parent joint changed by
+        `bone_offsets` (24, 3) metres, canonical frame; every vertex moves by its skinning blend of the
+        joints' displacements, so a longer thigh carries the shin and the foot with the knee and the ankle."""
+        displacements = joint_displacements(bone_offsets.to(self.rest_joints.dtype))
+        return BodyTemplate(
+            self.vertices + self.weights @ displacements.to(self.vertices.dtype),
+            self.faces,
+            self.weights,
+            self.rest_joints + displacements,
+            self.uvs,
+            self.face_uvs,
+        )

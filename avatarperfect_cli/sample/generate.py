@@ -16,6 +16,7 @@ import torch
 from rich.progress import Progress
 
 from avatarperfect_cli.body import load_body_template
+from avatarperfect_cli.body.anny_model import full_phenotype
 from avatarperfect_cli.body.base import BodyTemplate
 from avatarperfect_cli.datasets.people_snapshot import write_people_snapshot
 from avatarperfect_cli.errors import AvatarPerfectError
@@ -47,10 +48,12 @@ def make_sample(
     seed: int = 0,
     train_frames: int = 100,
     test_frames: int = 30,
+    phenotype: dict[str, float] | None = None,
 ) -> None:
     """Write the synthetic subject's training video to out_dir/train and its test video to out_dir/test.
 
-    preset: a name from texture.PRESETS (body shape and clothes); resolution: square image side in pixels.
+    preset: a name from texture.PRESETS (body shape and clothes); resolution: square image side in pixels;
+    phenotype: another anny body for the preset's clothes (names in anny_model.PHENOTYPES, missing ones 0.5).
     Both videos share one fixed camera that keeps every frame's body in view. The same arguments give
     byte-identical files. Raises AvatarPerfectError for an unknown preset or a size below the minimum.
     """
@@ -59,7 +62,8 @@ def make_sample(
             f"make-sample needs a resolution of at least {MIN_RESOLUTION} px and at least one frame per video, "
             f"got {resolution} px, {train_frames} training and {test_frames} test frames"
         )
-    synthetic = SyntheticSubject.create(preset, seed)
+    body = full_phenotype(phenotype) if phenotype else get_preset(preset).phenotype
+    synthetic = SyntheticSubject.create(preset, seed, body)
     posed = {
         "train": posed_vertices(synthetic.template, motions.turntable(train_frames, seed)),
         "test": posed_vertices(synthetic.template, motions.held_out_motion(test_frames)),
@@ -75,7 +79,7 @@ def make_sample(
         motion = posed[split][1]
         subject = {
             "body_model": "anny",
-            "phenotype": get_preset(preset).phenotype,
+            "phenotype": body,
             "preset": preset,
             "seed": seed,
             "split": split,

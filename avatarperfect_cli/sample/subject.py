@@ -18,7 +18,8 @@ import torch
 from avatarperfect_cli.body import load_body_template
 from avatarperfect_cli.body.base import BodyTemplate
 from avatarperfect_cli.body.skeleton import forward_kinematics, skin_points
-from avatarperfect_cli.errors import InputFileError
+from avatarperfect_cli.body.anny_model import full_phenotype
+from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
 from avatarperfect_cli.io.json_file import read_json_object
 from avatarperfect_cli.render.camera import Camera
 from avatarperfect_cli.sample.mesh_raster import MeshRender, render_mesh, vertex_normals
@@ -42,10 +43,11 @@ class SyntheticSubject:
     seed: int
 
     @classmethod
-    def create(cls, preset: str = "default", seed: int = 0) -> SyntheticSubject:
-        """The subject make_sample renders for these arguments (AvatarPerfectError for an unknown preset)."""
+    def create(cls, preset: str = "default", seed: int = 0, phenotype: dict[str, float] | None = None) -> SyntheticSubject:
+        """The subject make_sample renders for these arguments: the preset's clothes on the preset's body, or
+        on the anny body of `phenotype` (AvatarPerfectError for an unknown preset or phenotype)."""
         subject_preset = get_preset(preset)
-        template = load_body_template("anny", phenotype=subject_preset.phenotype)
+        template = load_body_template("anny", phenotype=phenotype or subject_preset.phenotype)
         return cls(template, paint_texture(template, subject_preset, TEXTURE_SIZE, seed), preset, seed)
 
     @classmethod
@@ -65,9 +67,12 @@ class SyntheticSubject:
             raise InputFileError(folder, f"{_NOT_SYNTHETIC} (subject.json names no anny preset)")
         if not isinstance(seed, int) or isinstance(seed, bool):
             raise InputFileError(folder, f"{_NOT_SYNTHETIC} (subject.json has no integer seed)")
-        if subject.get("phenotype") != PRESETS[preset].phenotype:
-            raise InputFileError(folder, f"{_NOT_SYNTHETIC} (its phenotype is not preset {preset!r}'s)")
-        return cls.create(preset, seed)
+        phenotype = subject.get("phenotype")
+        try:
+            full_phenotype(phenotype if isinstance(phenotype, dict) else {"": phenotype})
+        except AvatarPerfectError as error:
+            raise InputFileError(folder, f"{_NOT_SYNTHETIC} ({error})") from None
+        return cls.create(preset, seed, phenotype)
 
     def render(self, body_pose: torch.Tensor, transl: torch.Tensor, camera: Camera) -> MeshRender:
         """The subject at one pose, on white. body_pose: (24, 3) SMPL axis-angle, radians; transl: (3,) metres,

@@ -201,7 +201,7 @@ def _signatures(folder: Path, painted: Path | None) -> dict[Path, Signature]:
 
 
 def _start_editor(editor: str | None, image: Path, console: Console) -> subprocess.Popen | None:
-    """Start the editor on `image` in its own session, so that a Ctrl-C of the loop does not close it."""
+    """Start the editor on `image` detached from the terminal, so that a Ctrl-C of the loop does not close it."""
     if editor is None:
         return None
     console.print(f"opening it with {editor}", highlight=False)

@@ -23,7 +23,7 @@ from avatarperfect_cli.io.outputs import check_new_output
 from avatarperfect_cli.io.workspace import locked_workspace
 from avatarperfect_cli.sample.simulated_user import PaintResult, UserConfig, paint
 from avatarperfect_cli.sample.subject import SyntheticSubject
-from avatarperfect_cli.stages.workspace_data import latest_suggestion
+from avatarperfect_cli.stages.workspace_data import latest_suggestion, transl_offset
 
 SIMULATED_EDIT = "simulated_edit.png"
 
@@ -51,7 +51,9 @@ def simulate_user(
         pose = read_pose(folder / "pose.json")
         suggested = read_image(folder / "suggested.png", "RGB")
         alpha = read_image(folder / "suggested_alpha.png", "L")[..., 0]
-        result = paint(suggested, alpha, truth_model.render(pose.body_pose, pose.transl, pose.camera), config)
+        # the avatar's translations carry the workspace's offset; the subject's are its own
+        truth = truth_model.render(pose.body_pose, pose.transl - transl_offset(workspace), pose.camera)
+        result = paint(suggested, alpha, truth, config)
         path = Path(output) if output is not None else folder / SIMULATED_EDIT
         if output is None:  # inside the workspace: the image and its stats appear together
             with updated_folder(folder) as staging:

@@ -9,16 +9,20 @@ from pathlib import Path
 import numpy as np
 import torch
 from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from avatarperfect_cli.avatar.model import Avatar
 from avatarperfect_cli.body import BodyTemplate, load_body_template
+from avatarperfect_cli.body.anny_model import build_anny_template, default_cache_dir, load_anny_model
 from avatarperfect_cli.datasets import FrameRange, VideoDataset, load_people_snapshot, read_dataset_camera, video_fingerprint
 from avatarperfect_cli.devices import CPU
 from avatarperfect_cli.errors import AvatarPerfectError
 from avatarperfect_cli.io.atomic import atomic_path
+from avatarperfect_cli.io import write_image
 from avatarperfect_cli.io.camera_json import camera_to_json
 from avatarperfect_cli.io.workspace import check_new_workspace, new_workspace, workspace_lock
 from avatarperfect_cli.training.pose_refinement import PoseRefiner
+from avatarperfect_cli.training.body_fit import BodyFitConfig, fit_body, fit_picture
 from avatarperfect_cli.training.template_offset import OffsetSearch, fit_transl_offset
 from avatarperfect_cli.training.trainer import TrainConfig, train, video_views
 
@@ -28,6 +32,10 @@ REFINED_POSES = "poses.npz"
 
 # --transl-offset: fit it when the poses were fitted for another body (auto), always (fit), or take it as given.
 AUTO_OFFSET, FIT_OFFSET = "auto", "fit"
+# --body-shape: fit the body to the masks, take the dataset's (exact), or fit unless the dataset names its body (auto).
+BODY_SHAPES = ("auto", "fit", "exact")
+# The picture of the body fit in the workspace: the start and the fitted body over training masks.
+BODY_FIT_PICTURE = "body_fit.png"
 
 
 def parse_transl_offset(text: str) -> str | tuple[float, float, float]:
@@ -79,17 +87,30 @@ class BodySettings:
     transl_offset: what to add to the dataset's translations so the template lands on the subject
                    (training/template_offset.py): AUTO_OFFSET fits it when the template is not SMPL and the
                    dataset's poses were not made for it (no subject.json naming its body model), FIT_OFFSET
-                   always fits it, a tuple gives it in metres (world frame)
+                   always fits it, a tuple gives it in metres (world frame); with a body fit it is where the
+                   fit starts, and the fit moves it in the image plane
+    shape:         "fit" fits the body to the masks (training/body_fit.py: anny's phenotype, or SMPL's
+                   betas as given, with a skeleton correction), "exact" takes the dataset's body (subject.json's
+                   anny phenotype, SMPL's betas, else anny's middle phenotype), "auto" is exact when the
+                   dataset's subject.json names the template's body and fit otherwise
     """
 
     name: str = "anny"
     smpl_model_dir: Path | None = None
     transl_offset: str | tuple[float, float, float] = AUTO_OFFSET
+    shape: str = "auto"
+
+    def fits_shape(self, video: VideoDataset) -> bool:
+        """Whether to fit the body to the video's masks (see `shape`)."""
+        if self.shape not in BODY_SHAPES:
+            raise AvatarPerfectError(f"unknown body shape {self.shape!r}; choose one of {', '.join(BODY_SHAPES)}")
+        names_body = (video.subject or {}).get("body_model") == self.name == "anny"
+        return self.shape == "fit" or (self.shape == "auto" and not names_body)
 
     def template(self, video: VideoDataset) -> tuple[BodyTemplate, dict]:
-        """The template and the JSON description stored in the avatar."""
+        """The template and the JSON description stored in the avatar (the start of a body fit)."""
         subject = video.subject or {}
-        if subject.get("body_model") == "anny":
+        if subject.get("body_model") == "anny" and not self.fits_shape(video):
             phenotype = subject.get("phenotype")
             return load_body_template("anny", phenotype=phenotype), {"name": "anny", "phenotype": phenotype}
         if self.name == "smpl":
@@ -134,13 +155,15 @@ def train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool =
 
 
 def _transl_offset(
-    dataset: Path, fit: InitialFit, video: VideoDataset, template: BodyTemplate, body_model: dict, console: Console
-) -> torch.Tensor:
-    """(3,) metres added to the video's translations (BodySettings.transl_offset); a fitted one is measured
-    on masks of at least the search's resolution (the training video's, or a finer load of the same frames)."""
+    dataset: Path, fit: InitialFit, video: VideoDataset, template: BodyTemplate, body_model: dict, console: Console,
+    search: bool = False,
+) -> torch.Tensor:  # fmt: skip
+    """(3,) metres added to the video's translations (BodySettings.transl_offset), searched for when the
+    settings ask for it or `search`; a searched one is measured on masks of at least the search's resolution
+    (the training video's, or a finer load of the same frames)."""
     if isinstance(fit.body.transl_offset, tuple):
         return torch.tensor(fit.body.transl_offset, dtype=torch.float32)
-    if not fit.body.needs_offset(body_model, video):
+    if not (search or fit.body.needs_offset(body_model, video)):
         return torch.zeros(3)
     search = OffsetSearch()
     fine_enough = max(video.camera.width, video.camera.height) >= search.resolution
@@ -155,6 +178,38 @@ def _transl_offset(
     return result.offset
 
 
+def _fit_body(
+    video: VideoDataset, template: BodyTemplate, body_model: dict, offset: torch.Tensor, progress: bool, console: Console
+) -> tuple[BodyTemplate, dict, torch.Tensor, np.ndarray]:
+    """The body fitted to the video's masks from `template` at `offset`: the fitted template, its description,
+    the offset (3,) and the before/after picture."""
+    config = BodyFitConfig()
+    anny = load_anny_model(default_cache_dir()) if body_model["name"] == "anny" else None
+    steps = (len(config.starts) if anny is not None else 1) * config.start_steps + config.shape_steps
+    start = time.perf_counter()
+    with Progress(TextColumn("[bold]fitting the body"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=Console(stderr=True), transient=True, disable=not progress) as bar:  # fmt: skip
+        task = bar.add_task("body", total=steps)
+        result = fit_body(video, offset, config, anny_model=anny, template=None if anny else template,
+                          on_step=lambda: bar.advance(task))  # fmt: skip
+    described = dict(body_model)
+    if anny is not None:
+        described["phenotype"] = result.phenotype
+        fitted = build_anny_template(anny, result.phenotype)
+    else:
+        fitted = template
+    fitted = fitted.with_bone_offsets(result.bone_offsets)
+    described["bone_offsets"] = result.bone_offsets.tolist()
+    picture, (iou_before, iou_after) = fit_picture(video, [(template, offset), (fitted, result.transl_offset)])
+    shape = ", ".join(f"{name} {value:.2f}" for name, value in result.phenotype.items())
+    console.print(
+        f"body fitted to the masks in {time.perf_counter() - start:.0f} s: silhouette IoU {iou_before:.3f} -> {iou_after:.3f}"
+        + (f" ({shape})" if shape else ""),
+        soft_wrap=True,
+    )
+    return fitted, described, result.transl_offset, picture
+
+
 def _train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool, progress: bool) -> Path:
     check_new_workspace(workspace, force)
     console = Console(stderr=True, quiet=not progress)
@@ -162,7 +217,11 @@ def _train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool,
     for note in video.notes:
         console.print(note, soft_wrap=True, markup=False, highlight=False)
     template, body_model = fit.body.template(video)
-    offset = _transl_offset(dataset, fit, video, template, body_model, console)
+    fits_shape = fit.body.fits_shape(video)
+    offset = _transl_offset(dataset, fit, video, template, body_model, console, search=fits_shape)
+    picture = None
+    if fits_shape:
+        template, body_model, offset, picture = _fit_body(video, template, body_model, offset, progress, console)
     video.transl = video.transl + offset
     avatar = Avatar.from_template(template, sh_degree=fit.sh_degree, body_model=body_model).to(fit.device)
     console.print(f"fitting {len(avatar):,} Gaussians to {len(video)} frames of {video.camera.width}x{video.camera.height}")
@@ -190,6 +249,8 @@ def _train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool,
     with new_workspace(workspace, manifest, force) as staged:
         staged.set_dataset(dataset)  # relative to the staging folder, a sibling of `workspace`: the same path
         avatar.save(staged.avatar_path(0))
+        if picture is not None:
+            write_image(staged.root / BODY_FIT_PICTURE, torch.from_numpy(picture))
         if refiner is not None:
             body_pose, transl = refiner.refined(video.body_pose, video.transl)
             with atomic_path(staged.root / REFINED_POSES) as temporary, open(temporary, "wb") as handle:

@@ -63,8 +63,7 @@ def fit_transl_offset(template: BodyTemplate, video: VideoDataset, search: Offse
     chosen = torch.linspace(0, len(video) - 1, min(search.frames, len(video))).round().long().unique()
     masks = masks[chosen].numpy()
     body_pose, transl = video.body_pose[chosen].float(), video.transl[chosen].float()
-    silhouette = Avatar.from_template(template, sh_degree=0)
-    silhouette.params["log_scales"] = silhouette.params["log_scales"] + math.log(SILHOUETTE_SHRINK)
+    silhouette = silhouette_avatar(template)
     canvas = _canvas(camera)
     rotation = camera.world_to_camera[:3, :3]
     offset = torch.zeros(3)
@@ -82,6 +81,13 @@ def fit_transl_offset(template: BodyTemplate, video: VideoDataset, search: Offse
         depth = _mean_root_depth(silhouette.rest_joints, body_pose, transl + offset, camera)
         offset = offset + depth * (shift_x / float(camera.K[0, 0]) * rotation[0] + shift_y / float(camera.K[1, 1]) * rotation[1])
     return OffsetFit(offset, iou)
+
+
+def silhouette_avatar(template: BodyTemplate) -> Avatar:
+    """The template's initial Gaussians, shrunk so that their alpha hugs the mesh's outline."""
+    silhouette = Avatar.from_template(template, sh_degree=0)
+    silhouette.params["log_scales"] = silhouette.params["log_scales"] + math.log(SILHOUETTE_SHRINK)
+    return silhouette
 
 
 def _comparison_frames(video: VideoDataset, resolution: int) -> tuple[Camera, torch.Tensor]:

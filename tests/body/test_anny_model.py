@@ -147,3 +147,34 @@ def test_our_skinning_matches_anny_posing(model, template: BodyTemplate) -> None
     assert error[1:].median() < 1e-5
     assert error[1:].quantile(0.99) < 0.02
     assert error[1:].max() < 0.04
+
+
+def test_anny_shape_gradient_matches_finite_differences() -> None:
+    from avatarperfect_cli.body.anny_model import anny_shape, default_cache_dir, load_anny_model
+
+    model = load_anny_model(default_cache_dir(), progress=False)
+    phenotype = torch.tensor([0.3, 0.6, 0.5, 0.4, 0.7, 0.5], dtype=torch.float64, requires_grad=True)
+    direction = torch.randn(24, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    (anny_shape(model, phenotype)[1] * direction).sum().backward()
+    step = 1e-4
+    for index in (1, 4):  # age and height
+        moved = [phenotype.detach().clone() for _ in range(2)]
+        moved[0][index] += step
+        moved[1][index] -= step
+        with torch.no_grad():
+            numeric = ((anny_shape(model, moved[0])[1] - anny_shape(model, moved[1])[1]) * direction).sum() / (2 * step)
+        assert float(phenotype.grad[index]) == pytest.approx(float(numeric), rel=1e-3, abs=1e-6)
+
+
+def test_a_described_skeleton_correction_is_applied_and_checked() -> None:
+    from avatarperfect_cli.body import load_body_template, load_described_template
+    from avatarperfect_cli.errors import AvatarPerfectError
+
+    offsets = torch.zeros(24, 3)
+    offsets[16, 0] = 0.01  # a wider left shoulder
+    described = load_described_template({"name": "anny", "bone_offsets": offsets.tolist()})
+    plain = load_body_template("anny")
+    torch.testing.assert_close(described.rest_joints - plain.rest_joints, plain.with_bone_offsets(offsets).rest_joints - plain.rest_joints)
+    assert float(described.rest_joints[20, 0] - plain.rest_joints[20, 0]) == pytest.approx(0.01, abs=1e-6)
+    with pytest.raises(AvatarPerfectError, match="bone_offsets"):
+        load_described_template({"name": "anny", "bone_offsets": [[0.0, 0.0]]})

@@ -365,3 +365,30 @@ def test_torch_skinning_on_cuda_matches_numba_forward_and_backward(dtype: torch.
     for value, reference in zip(actual, expected):
         assert value.is_cuda
         _assert_close_relative(value.cpu(), reference, tolerance)
+
+
+def test_joint_displacements_sum_each_chain() -> None:
+    from avatarperfect_cli.body.base import SMPL_PARENTS, joint_displacements
+
+    offsets = torch.randn(24, 3, dtype=torch.float64)
+    expected = torch.zeros(24, 3, dtype=torch.float64)
+    for joint in range(24):
+        ancestor = joint
+        while ancestor >= 0:
+            expected[joint] += offsets[ancestor]
+            ancestor = SMPL_PARENTS[ancestor]
+    torch.testing.assert_close(joint_displacements(offsets), expected)
+
+
+def test_bone_offsets_move_joints_and_the_vertices_they_drive() -> None:
+    from avatarperfect_cli.body.base import BodyTemplate
+
+    weights = torch.zeros(3, 24)
+    weights[0, 0], weights[1, 4], weights[2, 4], weights[2, 1] = 1.0, 1.0, 0.5, 0.5  # root, left knee, a blend
+    template = BodyTemplate(torch.zeros(3, 3), torch.zeros(1, 3, dtype=torch.long), weights, torch.zeros(24, 3))
+    offsets = torch.zeros(24, 3)
+    offsets[4] = torch.tensor([0.0, -0.02, 0.0])  # a 2 cm longer thigh: the knee and everything below move
+    moved = template.with_bone_offsets(offsets)
+    torch.testing.assert_close(moved.rest_joints[[4, 7, 10]], offsets[4].expand(3, 3))
+    torch.testing.assert_close(moved.rest_joints[[0, 1, 2, 5]], torch.zeros(4, 3))
+    torch.testing.assert_close(moved.vertices, torch.tensor([[0.0, 0.0, 0.0], [0.0, -0.02, 0.0], [0.0, -0.01, 0.0]]))

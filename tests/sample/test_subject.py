@@ -116,7 +116,7 @@ def _copy_with_subject(tmp_path: Path, edit: dict | None) -> Path:
 @pytest.mark.parametrize(
     "edit",
     [None, {"body_model": "smpl"}, {"preset": "nobody"}, {"seed": "zero"}, {"seed": True},
-     {"phenotype": {"age": 0.1}}],
+     {"phenotype": {"age": 1.5}}, {"phenotype": {"stature": 0.5}}, {"phenotype": "tall"}],
 )  # fmt: skip
 def test_from_dataset_refuses_other_datasets_in_one_line(tmp_path: Path, edit: dict | None) -> None:
     folder = _copy_with_subject(tmp_path, edit)

@@ -113,3 +113,24 @@ def test_refine_poses_stores_the_video_poses(tmp_path: Path):
         # 40 steps stay before the refinement's start step (500): the poses are the video's own.
         np.testing.assert_array_equal(poses["body_pose"], video.body_pose.numpy())
         assert poses["transl"].shape == (3, 3)
+
+
+def test_a_fitted_body_is_recorded_for_every_later_stage(tmp_path: Path):
+    """--body-shape fit: the picture, and an avatar whose described body rebuilds its own rest joints."""
+    import torch
+
+    from avatarperfect_cli.avatar.model import Avatar
+    from avatarperfect_cli.body import load_described_template
+
+    result = invoke("train-initial", SAMPLE / "train", tmp_path / "ws", "--iterations", "5", "--resolution", "64",
+                    "--frames", "0:59:6", "--body-shape", "fit")  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert "body fitted to the masks" in result.output
+    ws = open_workspace(tmp_path / "ws")
+    assert (tmp_path / "ws" / train_initial_stage.BODY_FIT_PICTURE).is_file()
+    avatar = Avatar.load(ws.avatar_path(0))
+    body = avatar.body_model
+    assert set(body["phenotype"]) == {"gender", "age", "muscle", "weight", "height", "proportions"}
+    assert torch.tensor(body["bone_offsets"]).shape == (24, 3)
+    torch.testing.assert_close(load_described_template(body).rest_joints, avatar.rest_joints)
+    assert ws.manifest["transl_offset"] != [0.0, 0.0, 0.0]

@@ -72,7 +72,11 @@ def test_an_instantavatar_folder_trains_and_evaluates_with_no_extra_flags(instan
     workspace = open_workspace(tmp_path / "ws")
     assert workspace.manifest["poses"] == "poses/anim_nerf_train.npz"
     offset = torch.tensor(workspace.manifest["transl_offset"])
-    assert float(offset.norm()) > 0.05  # the default anny body is not the sample's: its pelvis sits elsewhere
+    # no subject.json: the body is fitted to the masks, and the fitted body's pelvis lands where the sample's
+    # does (anny's middle body would need about 5 cm more)
+    assert "body fitted to the masks" in result.stderr
+    assert set(workspace.manifest["body_model"]["phenotype"]) == {"gender", "age", "muscle", "weight", "height", "proportions"}
+    assert float(offset.norm()) < 0.03
 
     # visibility / refine re-load the video from the manifest: the same frames, poses and offset.
     video = load_video(workspace, with_images=False)

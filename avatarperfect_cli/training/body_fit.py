@@ -1,0 +1,426 @@
+"""The subject's body from the video's masks: anny's phenotype, a skeleton correction and the translation
+offset, fitted before any Gaussian is trained.
+
+The template is posed by the video's poses and projected into the camera; its outline is compared with the
+person masks by two distances, both in pixels at the fit's resolution (Huber-robust, so a mask a few pixels
+off at its border moves nothing far):
+    outside   each template point's distance outside its frame's mask (the mask's distance transform,
+              sampled bilinearly): no part of the body sticks out of the person;
+    coverage  each mask-contour pixel's distance to the nearest projected template point: the body fills
+              the person's outline.
+Both are differentiable in the template through anny's torch forward pass, so Adam fits:
+    phenotype      anny's six values, through a sigmoid (they stay in (0, 1)), pulled toward the middle by
+                   a weak prior so that size is not traded for distance where the camera is uncertain;
+    bone offsets   a change of each bone's offset from its parent joint (24, 3), left and right mirrored,
+                   pulled toward zero: limbs and shoulders land where the masks show them in every pose;
+    offset         a translation in the image plane added to every frame (along the viewing direction a
+                   silhouette only tells the body's size).
+The fit starts from a few phenotypes (the middle, a more male and a more female body) and continues the best.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import cv2
+import numba
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from avatarperfect_cli.avatar.rendering import render_avatar
+from avatarperfect_cli.body import BodyTemplate, forward_kinematics, skin_points
+from avatarperfect_cli.body.anny_model import PHENOTYPES, anny_shape, joint_weights
+from avatarperfect_cli.body.base import SMPL_MIRROR, joint_displacements
+from avatarperfect_cli.datasets import VideoDataset
+from avatarperfect_cli.datasets.people_snapshot import downscaled_camera
+from avatarperfect_cli.errors import AvatarPerfectError
+from avatarperfect_cli.render import Camera
+from avatarperfect_cli.training.template_offset import silhouette_avatar
+
+# Phenotype values are stored rounded to this many decimals, so a recorded body rebuilds the same template.
+PHENOTYPE_DECIMALS = 4
+
+
+@dataclass
+class BodyFitConfig:
+    """Settings of the body fit.
+
+    frames:          video frames compared (evenly spaced over the video)
+    resolution:      longest side of the compared masks, pixels
+    points:          template vertices posed and projected (drawn by surface area, fixed)
+    contour_pixels:  mask-contour pixels per frame in the coverage term (drawn, fixed)
+    starts:          starting phenotypes (missing values 0.5); each runs `start_steps`, the best goes on
+    start_steps:     steps on phenotype and offset from each start
+    shape_steps:     steps of the best start with the skeleton correction added
+    relinearise_every: steps between anny forward passes (the template is linear in the phenotype between)
+    phenotype_rate:  Adam step on the phenotype logits; offset_rate, bone_rate: metres
+    phenotype_prior: loss (pixels) of a value 0.5 from the middle, growing with its square
+    bone_prior:      loss (pixels) of a 1 cm bone offset, growing with its square
+    huber:           pixels beyond which a distance counts linearly
+    """
+
+    frames: int = 24
+    resolution: int = 256
+    points: int = 5000
+    contour_pixels: int = 400
+    starts: tuple[dict[str, float], ...] = field(default_factory=lambda: ({}, {"gender": 0.15}, {"gender": 0.85}))
+    start_steps: int = 60
+    shape_steps: int = 200
+    phenotype_rate: float = 0.08
+    offset_rate: float = 0.003
+    bone_rate: float = 0.002
+    relinearise_every: int = 20
+    phenotype_prior: float = 0.02
+    bone_prior: float = 0.002
+    huber: float = 2.0
+
+
+@dataclass
+class BodyFit:
+    """phenotype: anny's six values; bone_offsets: (24, 3) metres, canonical frame (`BodyTemplate.with_bone_offsets`);
+    transl_offset: (3,) metres, world frame, added to every frame's transl; loss: the final silhouette loss,
+    pixels; start_loss: the same for the starting body at the starting offset."""
+
+    phenotype: dict[str, float]
+    bone_offsets: torch.Tensor
+    transl_offset: torch.Tensor
+    loss: float
+    start_loss: float
+
+
+@dataclass
+class _Silhouettes:
+    """The compared frames at the fit's resolution: camera, poses (T, 24, 3), transl (T, 3), outside distance
+    transforms (T, 1, h, w) in pixels, and contour pixel centres (T, M, 2)."""
+
+    camera: Camera
+    body_pose: torch.Tensor
+    transl: torch.Tensor
+    outside: torch.Tensor
+    contours: torch.Tensor
+
+
+def silhouettes(video: VideoDataset, frames: torch.Tensor, resolution: int, contour_pixels: int) -> _Silhouettes:
+    """The masks of `frames` (indices into the video) at about `resolution` pixels as distance fields.
+
+    Raises AvatarPerfectError naming the frame when a mask is empty or fills the whole frame.
+    """
+    factor = max(1, round(max(video.camera.width, video.camera.height) / resolution))
+    camera = downscaled_camera(video.camera, factor)
+    generator = np.random.default_rng(0)
+    outside, contours = [], []
+    for index in frames.tolist():
+        fine = video.masks[index]
+        if not fine.any() or fine.all():
+            what = "empty" if not fine.any() else "the whole frame"
+            raise AvatarPerfectError(f"the mask of frame {int(video.frame_ids[index])} is {what}: no body to fit")
+        mask = F.interpolate(fine.float()[None, None], size=(camera.height, camera.width), mode="area")[0, 0] >= 0.5
+        mask = mask.numpy().astype(np.uint8)
+        outside.append(cv2.distanceTransform(1 - mask, cv2.DIST_L2, 5))
+        border = mask & ~cv2.erode(mask, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
+        rows, cols = np.nonzero(border if border.any() else mask)
+        chosen = generator.choice(len(rows), contour_pixels, replace=len(rows) < contour_pixels)
+        contours.append(np.stack([cols[chosen], rows[chosen]], axis=1) + 0.5)
+    return _Silhouettes(
+        camera,
+        video.body_pose[frames].float(),
+        video.transl[frames].float(),
+        torch.from_numpy(np.stack(outside))[:, None],
+        torch.from_numpy(np.stack(contours)).float(),
+    )
+
+
+def project(points: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """(..., 3) world points, metres -> (..., 2) pixel coordinates (x right, y down; pixel centres at +0.5)."""
+    in_camera = points @ camera.world_to_camera[:3, :3].T + camera.world_to_camera[:3, 3]
+    pixels = in_camera @ camera.K.T
+    return pixels[..., :2] / pixels[..., 2:].clamp_min(1e-3)
+
+
+def _huber(distance: torch.Tensor, delta: float) -> torch.Tensor:
+    return torch.where(distance < delta, 0.5 * distance * distance / delta, distance - 0.5 * delta)
+
+
+def silhouette_loss(
+    points: torch.Tensor, weights: torch.Tensor, rest_joints: torch.Tensor, data: _Silhouettes,
+    body_pose: torch.Tensor, transl: torch.Tensor, huber: float,
+) -> torch.Tensor:  # fmt: skip
+    """Mean outside distance of the template points plus mean coverage distance of the contour pixels (pixels).
+
+    points: (P, 3) canonical template points; weights: (P, 24); rest_joints: (24, 3);
+    body_pose: (T, 24, 3) and transl: (T, 3), the compared frames' poses.
+    """
+    transforms = forward_kinematics(body_pose, rest_joints, transl)
+    pixels = project(skin_points(points, weights, transforms), data.camera)  # (T, P, 2)
+    size = torch.tensor([data.camera.width, data.camera.height], dtype=pixels.dtype)
+    grid = (2.0 * pixels / size - 1.0)[:, :, None]  # (T, P, 1, 2)
+    outside = F.grid_sample(data.outside, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    # beyond the image the border's distance is a lower bound: add how far past the border a point is
+    beyond = (pixels - pixels.clamp(torch.zeros_like(size), size)).norm(dim=-1)
+    outside_loss = _huber(outside[:, 0, :, 0] + beyond, huber).mean()
+    nearest = _nearest_points(pixels, data)
+    coverage = (data.contours - pixels.gather(1, nearest[..., None].expand(-1, -1, 2))).norm(dim=-1)
+    return outside_loss + _huber(coverage, huber).mean()
+
+
+# Side of the grid cells, pixels, in which `_nearest_kernel` files the projected points.
+_NEAREST_CELL = 4.0
+
+
+@numba.njit(cache=True)
+def _nearest_kernel(points: np.ndarray, queries: np.ndarray, width: int, height: int, cell: float) -> np.ndarray:
+    """(T, M) index of the nearest of `points` (T, P, 2) to each of `queries` (T, M, 2), exactly: the points
+    are filed in a grid of `cell`-pixel cells over the image (outside ones in its border cells) and each
+    query searches rings of cells outward until no unsearched cell can hold a nearer point."""
+    frames, count = points.shape[0], points.shape[1]
+    columns, rows = int(width / cell) + 1, int(height / cell) + 1
+    nearest = np.empty((frames, queries.shape[1]), np.int64)
+    for frame in range(frames):
+        cell_of = np.empty(count, np.int64)
+        starts = np.zeros(columns * rows + 1, np.int64)
+        for index in range(count):
+            column = min(max(int(points[frame, index, 0] / cell), 0), columns - 1)
+            row = min(max(int(points[frame, index, 1] / cell), 0), rows - 1)
+            cell_of[index] = row * columns + column
+            starts[cell_of[index] + 1] += 1
+        for slot in range(columns * rows):
+            starts[slot + 1] += starts[slot]
+        filled = starts[:-1].copy()
+        order = np.empty(count, np.int64)
+        for index in range(count):
+            order[filled[cell_of[index]]] = index
+            filled[cell_of[index]] += 1
+        for query in range(queries.shape[1]):
+            x, y = queries[frame, query, 0], queries[frame, query, 1]
+            home_column = min(max(int(x / cell), 0), columns - 1)
+            home_row = min(max(int(y / cell), 0), rows - 1)
+            best, best_index = np.inf, -1
+            for ring in range(max(columns, rows)):
+                for row in range(home_row - ring, home_row + ring + 1):
+                    if row < 0 or row >= rows:
+                        continue
+                    step = 1 if row in (home_row - ring, home_row + ring) else 2 * ring
+                    for column in range(home_column - ring, home_column + ring + 1, max(step, 1)):
+                        if column < 0 or column >= columns:
+                            continue
+                        slot = row * columns + column
+                        for position in range(starts[slot], starts[slot + 1]):
+                            index = order[position]
+                            dx, dy = points[frame, index, 0] - x, points[frame, index, 1] - y
+                            distance = dx * dx + dy * dy
+                            if distance < best:
+                                best, best_index = distance, index
+                if best_index >= 0 and best <= (ring * cell) ** 2:
+                    break
+            nearest[frame, query] = best_index
+    return nearest
+
+
+def _nearest_points(pixels: torch.Tensor, data: _Silhouettes) -> torch.Tensor:
+    """(T, M) index of the projected point (pixels (T, P, 2)) nearest to each contour pixel."""
+    points = pixels.detach().numpy().astype(np.float64)
+    queries = data.contours.numpy().astype(np.float64)
+    return torch.from_numpy(_nearest_kernel(points, queries, data.camera.width, data.camera.height, _NEAREST_CELL))
+
+
+def _mirrored(bone_offsets: torch.Tensor) -> torch.Tensor:
+    """(24, 3) offsets made left-right symmetric (+X is the body's left); the spine's have no sideways part."""
+    flipped = bone_offsets[list(SMPL_MIRROR)] * torch.tensor([-1.0, 1.0, 1.0])
+    symmetric = 0.5 * (bone_offsets + flipped)
+    return torch.cat([torch.zeros_like(symmetric[:1]), symmetric[1:]])
+
+
+class _BodyShape(torch.nn.Module):
+    """The fitted quantities: phenotype logits (6,), bone offsets (24, 3) metres, image-plane offset (2,) metres."""
+
+    def __init__(self, phenotype: dict[str, float]) -> None:
+        super().__init__()
+        values = torch.tensor([min(max(phenotype.get(name, 0.5), 0.02), 0.98) for name in PHENOTYPES])
+        self.logits = torch.nn.Parameter(torch.log(values / (1.0 - values)))
+        self.bones = torch.nn.Parameter(torch.zeros(24, 3))
+        self.image_offset = torch.nn.Parameter(torch.zeros(2))
+
+    def phenotype(self) -> torch.Tensor:
+        return torch.sigmoid(self.logits)
+
+    def bone_offsets(self) -> torch.Tensor:
+        return _mirrored(self.bones)
+
+
+class _LinearisedAnny:
+    """anny's T-pose points and rest joints near one phenotype, linear in the phenotype (a forward pass costs
+    about 40 ms, so the fit re-linearises every few steps instead of running one per step).
+
+    points: indices of the template vertices kept; step: phenotype difference of the finite differences.
+    """
+
+    def __init__(self, model: object, points: torch.Tensor, step: float = 0.02) -> None:
+        self.model, self.points, self.step = model, points, step
+        self.centre = torch.full((len(PHENOTYPES),), math.nan)
+
+    def linearise(self, phenotype: torch.Tensor) -> None:
+        """Evaluate anny at `phenotype` (6,) and at a step along each value (toward the middle)."""
+        centre = phenotype.detach().double()
+        with torch.no_grad():
+            base_vertices, base_joints = anny_shape(self.model, centre)
+            rows_v, rows_j = [], []
+            for index in range(len(PHENOTYPES)):
+                delta = self.step if centre[index] < 0.5 else -self.step
+                moved = centre.clone()
+                moved[index] += delta
+                vertices, joints = anny_shape(self.model, moved)
+                rows_v.append((vertices[self.points] - base_vertices[self.points]) / delta)
+                rows_j.append((joints - base_joints) / delta)
+        self.centre = centre.float()
+        self.base_points, self.base_joints = base_vertices[self.points].float(), base_joints.float()
+        self.point_slopes, self.joint_slopes = torch.stack(rows_v).float(), torch.stack(rows_j).float()
+
+    def __call__(self, phenotype: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Points (P, 3) and rest joints (24, 3) at `phenotype` (6,), SMPL frame, metres."""
+        change = phenotype - self.centre
+        points = self.base_points + torch.einsum("k,kpc->pc", change, self.point_slopes)
+        return points, self.base_joints + torch.einsum("k,kjc->jc", change, self.joint_slopes)
+
+
+class _FixedShape:
+    """A template whose shape is given (SMPL with the dataset's betas): the phenotype changes nothing."""
+
+    def __init__(self, template: BodyTemplate, points: torch.Tensor) -> None:
+        self.points, self.joints = template.vertices[points].float(), template.rest_joints.float()
+
+    def linearise(self, phenotype: torch.Tensor) -> None:
+        pass
+
+    def __call__(self, phenotype: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.points, self.joints
+
+
+def fit_body(
+    video: VideoDataset,
+    initial_offset: torch.Tensor,
+    config: BodyFitConfig | None = None,
+    *,
+    anny_model: object | None = None,
+    template: BodyTemplate | None = None,
+    on_step: Callable[[], None] | None = None,
+) -> BodyFit:
+    """Fit the body to the video's masks: anny's phenotype (with `anny_model`, a loaded `anny.Anny`) or the
+    given `template`'s shape as it is, plus the skeleton correction and the image-plane offset.
+
+    initial_offset: (3,) metres, world frame, where the start body already lands on the masks
+    (`template_offset.fit_transl_offset`), kept along the viewing direction; on_step: called after every
+    optimisation step (progress). With a given template the returned phenotype is empty.
+    """
+    config = config or BodyFitConfig()
+    frames = torch.linspace(0, len(video) - 1, min(config.frames, len(video))).round().long().unique()
+    data = silhouettes(video, frames, config.resolution, config.contour_pixels)
+    if anny_model is not None:
+        with torch.no_grad():
+            start_vertices, _ = anny_shape(anny_model, torch.full((len(PHENOTYPES),), 0.5, dtype=torch.float64))
+        chosen = _surface_points(start_vertices.float(), anny_model.faces.long(), config.points)
+        point_weights = joint_weights(anny_model)[chosen].float()
+        shape_near: _LinearisedAnny | _FixedShape = _LinearisedAnny(anny_model, chosen)
+        starts = config.starts
+    elif template is not None:
+        chosen = _surface_points(template.vertices.float(), template.faces, config.points)
+        point_weights = template.weights[chosen].float()
+        shape_near = _FixedShape(template, chosen)
+        starts = ({},)
+    else:
+        raise ValueError("fit_body needs anny_model or template")
+    axes = data.camera.world_to_camera[:2, :3].float()  # the camera's right and down axes, world frame
+
+    def loss_of(shape: _BodyShape, with_bones: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        points, joints = shape_near(shape.phenotype())
+        if with_bones:
+            displacements = joint_displacements(shape.bone_offsets())
+            points = points + point_weights @ displacements
+            joints = joints + displacements
+        transl = data.transl + initial_offset + shape.image_offset @ axes
+        fit = silhouette_loss(points, point_weights, joints, data, data.body_pose, transl, config.huber)
+        prior = config.phenotype_prior * ((shape.phenotype() - 0.5) / 0.5).square().sum()
+        if with_bones:
+            prior = prior + config.bone_prior * (shape.bone_offsets() / 0.01).square().sum()
+        return fit + prior, fit
+
+    def optimise(shape: _BodyShape, steps: int, with_bones: bool) -> float:
+        groups = [
+            {"params": [shape.logits], "lr": config.phenotype_rate},
+            {"params": [shape.image_offset], "lr": config.offset_rate},
+        ]
+        if with_bones:
+            groups.append({"params": [shape.bones], "lr": config.bone_rate})
+        optimizer = torch.optim.Adam(groups)
+        for step in range(steps):
+            if step % config.relinearise_every == 0:
+                shape_near.linearise(shape.phenotype())
+            optimizer.zero_grad(set_to_none=True)
+            loss_of(shape, with_bones)[0].backward()
+            optimizer.step()
+            if on_step is not None:
+                on_step()
+        shape_near.linearise(shape.phenotype())
+        with torch.no_grad():
+            return float(loss_of(shape, with_bones)[0])
+
+    with torch.no_grad():
+        shape_near.linearise(torch.full((len(PHENOTYPES),), 0.5))
+        start_loss = float(loss_of(_BodyShape({}), False)[1])
+    candidates = []
+    for start in starts:
+        shape = _BodyShape(start)
+        candidates.append((optimise(shape, config.start_steps, False), shape))
+    best = min(candidates, key=lambda candidate: candidate[0])[1]
+    optimise(best, config.shape_steps, True)
+    with torch.no_grad():
+        loss = float(loss_of(best, True)[1])
+        phenotype = {name: round(float(value), PHENOTYPE_DECIMALS) for name, value in zip(PHENOTYPES, best.phenotype())}
+        phenotype = phenotype if anny_model is not None else {}
+        offset = initial_offset + best.image_offset @ axes
+    return BodyFit(phenotype, best.bone_offsets().detach().clone(), offset.detach().clone(), loss, start_loss)
+
+
+# Colours of the fit picture: mask pixels the body misses, body pixels outside the mask, both.
+_MISSED, _OUTSIDE, _BOTH = (1.0, 0.6, 0.1), (0.15, 0.35, 1.0), (0.6, 0.6, 0.6)
+
+
+def fit_picture(
+    video: VideoDataset, bodies: list[tuple[BodyTemplate, torch.Tensor]], columns: int = 4, resolution: int = 256
+) -> tuple[np.ndarray, list[float]]:
+    """A row per body (template, transl offset (3,)) over `columns` evenly spaced training masks: grey where
+    body and mask agree, orange where the body misses the mask, blue where it sticks out; and each body's
+    mean IoU with the masks over those frames. Returns the picture (H, W, 3) float in [0, 1] and the IoUs."""
+    frames = torch.linspace(0, len(video) - 1, min(columns, len(video))).round().long().unique()
+    factor = max(1, round(max(video.camera.width, video.camera.height) / resolution))
+    camera = downscaled_camera(video.camera, factor)
+    masks = F.interpolate(video.masks[frames].float()[:, None], size=(camera.height, camera.width), mode="area")[:, 0] >= 0.5
+    rows, ious = [], []
+    for template, offset in bodies:
+        silhouette = silhouette_avatar(template)
+        panels, scores = [], []
+        with torch.no_grad():
+            for frame, mask in zip(frames.tolist(), masks):
+                alpha = render_avatar(silhouette, video.body_pose[frame], video.transl[frame] + offset, camera, torch.zeros(3)).alpha
+                body = alpha >= 0.5
+                scores.append(float((body & mask).sum()) / max(float((body | mask).sum()), 1.0))
+                panel = torch.ones(camera.height, camera.width, 3)
+                panel[mask & ~body] = torch.tensor(_MISSED)
+                panel[body & ~mask] = torch.tensor(_OUTSIDE)
+                panel[body & mask] = torch.tensor(_BOTH)
+                panels.append(panel)
+        rows.append(torch.cat(panels, dim=1))
+        ious.append(sum(scores) / len(scores))
+    return torch.cat(rows, dim=0).numpy(), ious
+
+
+def _surface_points(vertices: torch.Tensor, faces: torch.Tensor, count: int) -> torch.Tensor:
+    """(count,) indices of template vertices drawn without replacement by their share of the surface area
+    (a fixed draw), so dense parts such as the face and the hands do not dominate."""
+    corners = vertices[faces]
+    areas = 0.5 * torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]).norm(dim=-1)
+    vertex_areas = torch.zeros(len(vertices)).index_add_(0, faces.reshape(-1), areas.repeat_interleave(3))
+    generator = torch.Generator().manual_seed(0)
+    return torch.multinomial(vertex_areas, min(count, int((vertex_areas > 0).sum())), replacement=False, generator=generator)
