@@ -22,7 +22,7 @@ from avatarperfect_cli.io import write_image
 from avatarperfect_cli.io.camera_json import camera_to_json
 from avatarperfect_cli.io.workspace import check_new_workspace, new_workspace, workspace_lock
 from avatarperfect_cli.training.pose_refinement import PoseRefiner
-from avatarperfect_cli.training.body_fit import BodyFitConfig, fit_body, fit_picture
+from avatarperfect_cli.training.body_fit import BodyFitConfig, check_masks, fit_body, fit_picture
 from avatarperfect_cli.training.template_offset import OffsetSearch, fit_transl_offset
 from avatarperfect_cli.training.trainer import TrainConfig, train, video_views
 
@@ -218,6 +218,8 @@ def _train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool,
         console.print(note, soft_wrap=True, markup=False, highlight=False)
     template, body_model = fit.body.template(video)
     fits_shape = fit.body.fits_shape(video)
+    if fits_shape:
+        check_masks(video)
     offset = _transl_offset(dataset, fit, video, template, body_model, console, search=fits_shape)
     picture = None
     if fits_shape:

@@ -103,6 +103,16 @@ class _Silhouettes:
     contours: torch.Tensor
 
 
+def check_masks(video: VideoDataset) -> None:
+    """Raise AvatarPerfectError naming the first frame whose mask is empty or fills the whole frame."""
+    covered = video.masks.flatten(1).float().mean(dim=1)
+    unfit = torch.nonzero((covered == 0) | (covered == 1)).flatten()
+    if len(unfit):
+        index = int(unfit[0])
+        what = "empty" if covered[index] == 0 else "the whole frame"
+        raise AvatarPerfectError(f"the mask of frame {int(video.frame_ids[index])} is {what}: no body to fit")
+
+
 def silhouettes(video: VideoDataset, frames: torch.Tensor, resolution: int, contour_pixels: int) -> _Silhouettes:
     """The masks of `frames` (indices into the video) at about `resolution` pixels as distance fields.
 
@@ -110,13 +120,11 @@ def silhouettes(video: VideoDataset, frames: torch.Tensor, resolution: int, cont
     """
     factor = max(1, round(max(video.camera.width, video.camera.height) / resolution))
     camera = downscaled_camera(video.camera, factor)
+    check_masks(video)
     generator = np.random.default_rng(0)
     outside, contours = [], []
     for index in frames.tolist():
         fine = video.masks[index]
-        if not fine.any() or fine.all():
-            what = "empty" if not fine.any() else "the whole frame"
-            raise AvatarPerfectError(f"the mask of frame {int(video.frame_ids[index])} is {what}: no body to fit")
         mask = F.interpolate(fine.float()[None, None], size=(camera.height, camera.width), mode="area")[0, 0] >= 0.5
         mask = mask.numpy().astype(np.uint8)
         outside.append(cv2.distanceTransform(1 - mask, cv2.DIST_L2, 5))

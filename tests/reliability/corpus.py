@@ -797,3 +797,17 @@ def _placeholders(argv: Callable[[Path], list[str]]) -> Callable[[Path], list[st
 
 
 CASES += _newer_stage_cases()
+
+
+def _body_fit_cases() -> list[Case]:
+    """A training video whose mask leaves no body to fit: the fit names the frame (the file itself is valid)."""
+    argv = ["train-initial", "ROOT/data", "ROOT/new-ws", "--iterations", "1", "--body-shape", "fit"]
+    mask = "data/masks/mask_0000.npy"
+    return [
+        Case(f"body-fit/{label}", _damaged(lambda root: write_dataset(root / "data"), mask, save_npy(value)),
+             lambda root: [a.replace("ROOT/", f"{root}/") for a in argv], names="frame 0")  # fmt: skip
+        for label, value in (("mask empty", np.zeros((HEIGHT, WIDTH), np.uint8)), ("mask whole frame", np.ones((HEIGHT, WIDTH), np.uint8)))
+    ]
+
+
+CASES += _body_fit_cases()
