@@ -39,6 +39,7 @@ class TrainingView:
     camera:     the view's camera
     loss_mask:  (H, W) bool edit mask M_k, or None to supervise every pixel (video frames)
     draw_weight: relative chance of this edit among the edits when a step draws one
+    loss_weight: factor on this edit's loss, on top of `TrainConfig.edit_loss_weight`
     """
 
     image: torch.Tensor
@@ -48,13 +49,14 @@ class TrainingView:
     camera: Camera
     loss_mask: torch.Tensor | None = None
     draw_weight: float = 1.0
+    loss_weight: float = 1.0
 
     def to(self, device: torch.device) -> TrainingView:
         """The view with every tensor (the camera's too) on `device`."""
         loss_mask = None if self.loss_mask is None else self.loss_mask.to(device)
         return TrainingView(
             self.image.to(device), self.foreground.to(device), self.body_pose.to(device), self.transl.to(device),
-            self.camera.to(device=device), loss_mask, self.draw_weight,
+            self.camera.to(device=device), loss_mask, self.draw_weight, self.loss_weight,
         )  # fmt: skip
 
 
@@ -172,7 +174,7 @@ def train(
                 loss = loss + config.background_alpha_weight * background_alpha(out.alpha[rows, cols], mask, view.foreground[rows, cols])
 
             strategy.step_pre_backward(avatar.params, optimizers, state, step, out)
-            (loss if mask is None else config.edit_loss_weight * loss).backward()  # the bar shows the unweighted loss
+            (loss if mask is None else config.edit_loss_weight * view.loss_weight * loss).backward()  # the bar shows the unweighted loss
             for name, optimizer in optimizers.items():
                 if name not in frozen:
                     optimizer.step()

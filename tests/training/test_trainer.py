@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import torch
 
@@ -229,6 +230,20 @@ def test_edit_loss_weight_lets_the_video_outweigh_an_edit_it_contradicts():
         reds.append(float(image[inside][:, 0].mean() - image[inside][:, 1:].mean()))
     assert fits[1] > fits[0] + 1.0, fits
     assert reds[1] < reds[0], reds
+
+
+def test_an_edit_views_loss_weight_multiplies_the_edit_loss_weight():
+    """A strong edit's view weighs its loss on top of the configured edit weight: 0.25 x 4 trains as 1 x 1."""
+    video = video_of(coloured_avatar())
+    edit = left_half_edit(video, [1.0, 0.0, 0.0])
+    results = []
+    for config_weight, view_weight in ((1.0, 1.0), (0.25, 4.0), (0.25, 1.0)):
+        avatar = coloured_avatar()
+        config = TrainConfig(iterations=20, edit_probability=0.5, edit_loss_weight=config_weight)
+        train(avatar, video, [replace(edit, loss_weight=view_weight)], config=config, progress=False)
+        results.append(avatar.params["sh_dc"].detach())
+    assert torch.equal(results[0], results[1])
+    assert not torch.equal(results[0], results[2])
 
 
 def test_rate_scales_set_each_gaussians_learning_rate():
