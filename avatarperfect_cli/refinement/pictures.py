@@ -10,50 +10,48 @@ import numpy as np
 import torch
 
 from avatarperfect_cli.avatar.model import Avatar
-from avatarperfect_cli.body import NUM_JOINTS
-from avatarperfect_cli.render import Camera, look_at, rasterization
-from avatarperfect_cli.render.camera import framing_distance
+from avatarperfect_cli.gaussians import sh_to_rgb
+from avatarperfect_cli.refinement.suggest import exposure_relevance
+from avatarperfect_cli.refinement.where_to_look import framed_camera, revealing_poses
+from avatarperfect_cli.render import Camera, rasterization
 
 PANEL_SIZE = 320  # pixels per view in the visibility picture
-# (name, direction from the body to the camera, image up), canonical frame: +Y up, +Z the body's front
-CANONICAL_VIEWS = (
-    ("front", (0.0, 0.0, 1.0), (0.0, 1.0, 0.0)),
-    ("left side", (1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
-    ("back", (0.0, 0.0, -1.0), (0.0, 1.0, 0.0)),
-    ("right side", (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
-    ("below", (0.0, -1.0, 0.0), (0.0, 0.0, 1.0)),
-)
 GUIDE_TINT = (1.0, 0.0, 0.8)  # magenta: no subject colour is this saturated
 GUIDE_OUTLINE = (255, 0, 200)
 FONT = cv2.FONT_HERSHEY_SIMPLEX
+# The least-seen colour of a pixel is the power mean, this power, of how little its Gaussians were seen,
+# weighted by their blend weights: one barely seen Gaussian with a tenth of the weight shows at 56%.
+LEAST_SEEN_POWER = 4.0
+LUMINANCE = (0.299, 0.587, 0.114)  # Rec. 601 weights of R, G, B
+SHADING = 0.3  # share of a pixel's brightness that follows the avatar's own colours (to show its shape)
+# Colour stops of "how much the video saw": deep red (barely) -> orange -> pale grey (well seen)
+LOOK_STOPS = ((0.0, (0.62, 0.0, 0.16)), (0.35, (0.93, 0.23, 0.10)), (0.65, (1.0, 0.72, 0.25)), (1.0, (0.9, 0.9, 0.9)))
 
 
-def barely_seen(visibility: torch.Tensor, share_of_mean: float = 0.1) -> torch.Tensor:
-    """(N,) bool: Gaussians the video saw less than `share_of_mean` of the mean visibility."""
-    return visibility < share_of_mean * visibility.mean()
+def look_lut() -> torch.Tensor:
+    """(256, 3) float32 RGB in [0, 1] of visibility from barely seen (index 0, deep red) to well seen (255,
+    pale grey), its lightness rising throughout: the well seen body recedes, the barely seen stands out."""
+    positions = np.array([stop for stop, _ in LOOK_STOPS])
+    colours = np.array([colour for _, colour in LOOK_STOPS])
+    levels = np.linspace(0.0, 1.0, 256)
+    return torch.from_numpy(np.stack([np.interp(levels, positions, colours[:, c]) for c in range(3)], axis=1)).float()
 
 
-def _panel_camera(points: torch.Tensor, direction: tuple[float, ...], up: tuple[float, ...]) -> Camera:
-    center = 0.5 * (points.min(dim=0).values + points.max(dim=0).values)
-    focal = 2.5 * PANEL_SIZE
-    K = torch.tensor([[focal, 0.0, PANEL_SIZE / 2], [0.0, focal, PANEL_SIZE / 2], [0.0, 0.0, 1.0]])
-    towards = torch.tensor(direction)
-    rotation = look_at(center + towards, center, torch.tensor(up))[:3, :3]
-    distance = float(framing_distance(points - center, rotation, K, PANEL_SIZE, PANEL_SIZE, fill=0.92))
-    return Camera(K, look_at(center + distance * towards, center, torch.tensor(up)), PANEL_SIZE, PANEL_SIZE)
+# (title, revealing pose, direction from the body to the camera, image up) of each panel; canonical frame
+PANELS = (
+    ("arms raised, front", "arms raised", (0.0, -0.2, 1.0), (0.0, 1.0, 0.0)),
+    ("arms raised, left side", "arms raised", (1.0, -0.2, 0.35), (0.0, 1.0, 0.0)),
+    ("legs apart, front, low", "legs apart", (0.0, -0.45, 1.0), (0.0, 1.0, 0.0)),
+    ("walking step, left side", "walking step", (1.0, -0.1, 0.0), (0.0, 1.0, 0.0)),
+    ("T-pose from below", "T-pose", (0.0, -1.0, 0.0), (0.0, 0.0, 1.0)),
+    ("T-pose from above", "T-pose", (0.0, 1.0, 0.0), (0.0, 0.0, -1.0)),
+)
 
 
-def viridis_lut() -> torch.Tensor:
-    """(256, 3) float32 RGB in [0, 1]: the perceptual viridis colour map (OpenCV's table)."""
-    levels = np.arange(256, dtype=np.uint8)[:, None]
-    bgr = cv2.applyColorMap(levels, cv2.COLORMAP_VIRIDIS)[:, 0]
-    return torch.from_numpy(np.ascontiguousarray(bgr[:, ::-1])).float() / 255.0
-
-
-def _text(canvas: np.ndarray, text: str, center_x: int, baseline_y: int, scale: float = 0.6) -> None:
-    """Black anti-aliased text centred on `center_x`, in place on an (H, W, 3) uint8 RGB canvas."""
+def _text(canvas: np.ndarray, text: str, x: int, baseline_y: int, scale: float = 0.6, centred: bool = True) -> None:
+    """Black anti-aliased text centred on (or starting at) `x`, in place on an (H, W, 3) uint8 RGB canvas."""
     width = cv2.getTextSize(text, FONT, scale, 1)[0][0]
-    cv2.putText(canvas, text, (center_x - width // 2, baseline_y), FONT, scale, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(canvas, text, (x - width // 2 if centred else x, baseline_y), FONT, scale, (0, 0, 0), 1, cv2.LINE_AA)
 
 
 def _colour_bar(lut: torch.Tensor, low: float, high: float, height: int, label: str) -> np.ndarray:
@@ -76,33 +74,76 @@ def _colour_bar(lut: torch.Tensor, low: float, high: float, height: int, label: 
     return canvas
 
 
-def visibility_picture(avatar: Avatar, visibility: torch.Tensor, title: str) -> bytes:
-    """PNG bytes: the canonical avatar (T-pose) from the front, both sides, the back and below, each
-    Gaussian coloured by its accumulated visibility V (N,) on a logarithmic perceptual colour map
-    (dark: barely seen), with a colour bar. Rendered on the avatar's device; `visibility` on the CPU."""
-    # the colours resolve the barely seen half: everything above the median is "seen" (brightest)
-    positive = visibility[visibility > 0]
-    low = float(torch.quantile(positive, 0.01)) if len(positive) else 1e-3
-    high = max(float(torch.quantile(visibility, 0.5)), low * 10)
-    lut = viridis_lut()
-    shade = (visibility.clamp(low, high).log() - math.log(low)) / (math.log(high) - math.log(low))
-    gaussian_colours = lut[(shade * 255).round().long()].to(avatar.device)
+def _region_list(shares: list[tuple[str, float, int]], height: int) -> np.ndarray:
+    """(height, w, 3) uint8 RGB: the body regions, most barely seen first, with their shares."""
+    canvas = np.full((height, 250, 3), 255, np.uint8)
+    _text(canvas, "barely seen Gaussians", 8, 30, 0.55, centred=False)
+    _text(canvas, "by region (check first):", 8, 52, 0.55, centred=False)
+    for row, (name, share, _) in enumerate(shares):
+        _text(canvas, f"{100 * share:5.1f}%  {name}", 8, 88 + 26 * row, 0.55, centred=False)
+    return canvas
+
+
+def least_seen_shade(
+    avatar: Avatar, body_pose: torch.Tensor, camera: Camera, shade: torch.Tensor, power: float = LEAST_SEEN_POWER
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The avatar in `body_pose` (24, 3) seen by `camera`, each pixel shaded by the least seen Gaussians that
+    contribute to it. shade: (N,) in [0, 1], 0 = barely seen. Returns the pixels' shade (H, W) in [0, 1]:
+    1 - (sum_i w_i (1 - shade_i)^power / sum_i w_i)^(1 / power) with w_i = T_i alpha_i, so a barely seen
+    Gaussian under well seen ones still darkens the pixel; the luminance of the avatar's own colours (H, W)
+    in [0, 1]; alpha (H, W). On the CPU."""
     with torch.no_grad():
-        means, quats = avatar.pose(torch.zeros(NUM_JOINTS, 3), torch.zeros(3))
-        panels = []
-        for _, direction, up in CANONICAL_VIEWS:
-            camera = _panel_camera(means.cpu(), direction, up)
-            out = rasterization(means, quats, avatar.scales, avatar.opacities, gaussian_colours, camera, background=torch.ones(3))
-            panels.append((out.image.clamp(0, 1).cpu() * 255).round().byte().numpy())
-    title_height, name_height = 40, 28
-    body = np.concatenate(panels, axis=1)
-    bar = _colour_bar(lut, low, high, PANEL_SIZE, "mean visibility per frame (pixels)")
-    canvas = np.full((title_height + name_height + PANEL_SIZE, body.shape[1] + bar.shape[1], 3), 255, np.uint8)
-    canvas[title_height + name_height :, : body.shape[1]] = body
-    canvas[title_height + name_height :, body.shape[1] :] = bar
+        means, quats = avatar.pose(body_pose, torch.zeros(3))
+        colours = sh_to_rgb(avatar.params["sh_dc"][:, 0]).clamp(0, 1)  # view-independent: shape, not shine
+        luminance = colours @ torch.tensor(LUMINANCE, dtype=colours.dtype, device=colours.device)
+        features = torch.stack([(1.0 - shade.to(means)) ** power, luminance], dim=1)
+        out = rasterization(means, quats, avatar.scales, avatar.opacities, features, camera)
+    alpha = out.alpha.cpu()
+    coverage = alpha.clamp_min(1e-6)
+    least = 1.0 - (out.image[..., 0].cpu() / coverage).clamp(0, 1) ** (1.0 / power)
+    return torch.where(alpha > 1e-3, least, 1.0), (out.image[..., 1].cpu() / coverage).clamp(0, 1), alpha
+
+
+def visibility_picture(
+    avatar: Avatar, visibility: torch.Tensor, exposure: torch.Tensor, shares: list[tuple[str, float, int]], title: str
+) -> bytes:
+    """PNG bytes: the avatar in poses that open the armpits, the crotch and the inner arms, and from below
+    and above, each pixel coloured by the least seen Gaussians in it (`least_seen_shade`) on a logarithmic
+    scale of the accumulated visibility V (N,) from a hundredth of its mean (red: barely seen) to its mean
+    (pale grey), with a colour bar and the body regions' shares of barely seen Gaussians (`shares`, most
+    first). A Gaussian counts as much as the revealing poses show it (`exposure` (N,), `exposure_relevance`):
+    the inside of the body never shows and stays out of the colours. Rendered on the avatar's device;
+    `visibility` and `exposure` on the CPU."""
+    high = max(float(visibility.mean()), 1e-12)
+    low = 0.01 * high
+    seen = (visibility.clamp(low, high).log() - math.log(low)) / (math.log(high) - math.log(low))
+    shade = 1.0 - (1.0 - seen) * exposure_relevance(exposure.double())
+    lut = look_lut()
+    poses = revealing_poses()
+    panels = []
+    for _, pose_name, direction, up in PANELS:
+        body_pose = poses[pose_name]
+        with torch.no_grad():
+            means, _ = avatar.pose(body_pose, torch.zeros(3))
+        camera = framed_camera(means.cpu(), direction, up, PANEL_SIZE)
+        least, luminance, alpha = least_seen_shade(avatar, body_pose, camera.to(avatar.device), shade)
+        colour = lut[(least * 255).round().long()] * (1.0 - SHADING + SHADING * luminance[..., None])
+        image = alpha[..., None] * colour + (1.0 - alpha[..., None])
+        panels.append((image.clamp(0, 1) * 255).round().byte().numpy())
+    title_height, name_height, columns = 40, 28, 3
+    rows = [np.concatenate(panels[start : start + columns], axis=1) for start in range(0, len(panels), columns)]
+    row_height = name_height + PANEL_SIZE
+    body = np.full((row_height * len(rows), columns * PANEL_SIZE, 3), 255, np.uint8)
+    for index, row in enumerate(rows):
+        body[index * row_height + name_height : (index + 1) * row_height] = row
+    for index, (name, _, _, _) in enumerate(PANELS):
+        row, column = divmod(index, columns)
+        _text(body, name, column * PANEL_SIZE + PANEL_SIZE // 2, row * row_height + 20)
+    bar = _colour_bar(lut, low, high, body.shape[0], "mean visibility per frame (pixels)")
+    listing = _region_list(shares, body.shape[0])
+    canvas = np.full((title_height + body.shape[0], body.shape[1] + bar.shape[1] + listing.shape[1], 3), 255, np.uint8)
+    canvas[title_height:] = np.concatenate([body, bar, listing], axis=1)
     _text(canvas, title, canvas.shape[1] // 2, 28, 0.7)
-    for index, (name, _, _) in enumerate(CANONICAL_VIEWS):
-        _text(canvas, name, index * PANEL_SIZE + PANEL_SIZE // 2, title_height + 20)
     return cv2.imencode(".png", canvas[..., ::-1])[1].tobytes()
 
 

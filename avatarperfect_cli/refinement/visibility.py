@@ -19,6 +19,7 @@ from avatarperfect_cli.io.pose_json import PoseFile
 from avatarperfect_cli.render import rasterization
 
 DEFAULT_EDIT_WEIGHT = 0.01
+BARELY_SEEN = 0.1  # a Gaussian seen less than this share of the mean visibility is barely seen
 
 
 def gaussian_visibility(avatar: Avatar, view: PoseFile, world_transform: torch.Tensor | None = None) -> torch.Tensor:
@@ -83,3 +84,9 @@ def suggestion_weights(visibility: torch.Tensor) -> torch.Tensor:
     """(N,) clip(V_i - mean V) = min(V_i - mean V, 0): negative for the Gaussians seen less than average,
     the per-Gaussian colour of the one-channel image whose sum is the suggestion objective."""
     return (visibility - visibility.mean()).clamp_max(0.0)
+
+
+def barely_seen(visibility: torch.Tensor, share_of_mean: float = BARELY_SEEN) -> torch.Tensor:
+    """(N,) bool: Gaussians the video saw less than `share_of_mean` of the mean visibility."""
+    return visibility < share_of_mean * visibility.mean()
+

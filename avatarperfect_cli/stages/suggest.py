@@ -28,10 +28,10 @@ from avatarperfect_cli.io import atomic_write_text, read_pose, write_image, writ
 from avatarperfect_cli.io.atomic import atomic_folder
 from avatarperfect_cli.io.workspace import locked_workspace
 from avatarperfect_cli.refinement.collision import BodyCapsules
-from avatarperfect_cli.refinement.pictures import barely_seen, guide_image
+from avatarperfect_cli.refinement.pictures import guide_image
 from avatarperfect_cli.refinement.pose_prior import load_pose_prior
 from avatarperfect_cli.refinement.suggest import SuggestConfig, Suggestion, suggest_view
-from avatarperfect_cli.refinement.visibility import DEFAULT_EDIT_WEIGHT
+from avatarperfect_cli.refinement.visibility import DEFAULT_EDIT_WEIGHT, barely_seen
 from avatarperfect_cli.render import rasterization
 from avatarperfect_cli.stages.visibility import current_visibility
 from avatarperfect_cli.stages.workspace_data import SUGGESTIONS, reference_pose

@@ -7,7 +7,8 @@ Writes ws/visibility/NNN.npz (NNN = avatar iteration) holding
     mean        V's mean
     frames      video frames accumulated;  edits: the edit folders accumulated (names)
     edit_weight w;  iteration: the avatar iteration;  gaussians: N
-and ws/visibility/NNN.png, the canonical avatar coloured by V.
+and ws/visibility/NNN.png, the avatar in revealing poses coloured by V, with the body regions' shares of
+barely seen Gaussians (also printed).
 """
 
 from __future__ import annotations
@@ -29,7 +30,8 @@ from avatarperfect_cli.io import atomic_write_bytes
 from avatarperfect_cli.io.atomic import updated_folder
 from avatarperfect_cli.io.workspace import Workspace, locked_workspace
 from avatarperfect_cli.refinement.pictures import visibility_picture
-from avatarperfect_cli.refinement.visibility import DEFAULT_EDIT_WEIGHT, combine_visibility, gaussian_visibility
+from avatarperfect_cli.refinement.visibility import BARELY_SEEN, DEFAULT_EDIT_WEIGHT, combine_visibility, gaussian_visibility
+from avatarperfect_cli.refinement.where_to_look import barely_seen_by_region, revealing_exposure
 from avatarperfect_cli.stages.workspace_data import registered_edits, video_poses
 
 VISIBILITY = "visibility"
@@ -104,11 +106,17 @@ def compute_visibility(
         edit_weight=edit_weight, iteration=workspace.iteration, gaussians=len(avatar),
     )  # fmt: skip
     title = f"avatar {workspace.iteration:03d}: visibility over {len(views)} frames and {len(edits)} edits"
-    picture = visibility_picture(avatar, visibility, title)
+    exposure = revealing_exposure(avatar)
+    shares = barely_seen_by_region(avatar, visibility, exposure)
+    picture = visibility_picture(avatar, visibility, exposure, shares, title)
     with updated_folder(path.parent) as staging:  # the record and its picture appear together
         atomic_write_bytes(staging / path.name, buffer.getvalue())
         atomic_write_bytes(staging / path.with_suffix(".png").name, picture)
     console.print(f"wrote {path} and {path.with_suffix('.png').name} ({time.perf_counter() - start:.1f} s)")
+    console.print(
+        f"barely seen (V below {BARELY_SEEN:.0%} of its mean) by body region, of what revealing poses show; check the first first: "
+        + ", ".join(f"{name} {share:.0%}" for name, share, _ in shares)
+    )
     return record
 
 

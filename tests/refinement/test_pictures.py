@@ -1,24 +1,58 @@
-"""The pictures a person reads: the visibility colour map and bar."""
+"""The pictures a person reads: the visibility colour map, bar and least-seen shading, the labelled grids."""
 
 from __future__ import annotations
 
 import numpy as np
 import torch
 
-from avatarperfect_cli.refinement.pictures import _colour_bar, caption_strip, labelled_grid, viridis_lut
+from avatarperfect_cli.avatar.model import Avatar
+from avatarperfect_cli.body import load_body_template
+from avatarperfect_cli.refinement.pictures import _colour_bar, caption_strip, labelled_grid, least_seen_shade, look_lut
+from avatarperfect_cli.render import Camera, look_at
 
 
-def test_viridis_runs_from_dark_purple_to_yellow_with_rising_lightness():
-    lut = viridis_lut()
+def test_the_look_colours_run_from_saturated_red_to_pale_grey_with_rising_lightness():
+    lut = look_lut()
     assert lut.shape == (256, 3)
-    torch.testing.assert_close(lut[0], torch.tensor([68, 1, 84]) / 255.0, atol=2 / 255, rtol=0)
-    torch.testing.assert_close(lut[-1], torch.tensor([253, 231, 37]) / 255.0, atol=2 / 255, rtol=0)
+    assert lut[0, 0] > 0.5 > lut[0, 1] + lut[0, 2]  # barely seen: red
+    assert (lut[-1] > 0.85).all() and float(lut[-1].max() - lut[-1].min()) < 0.05  # well seen: pale grey
     lightness = lut @ torch.tensor([0.299, 0.587, 0.114])
-    assert (lightness[8:] > lightness[:-8]).all()  # perceptual: darker means less seen, everywhere
+    assert (lightness[8:] > lightness[:-8]).all()  # lighter means more seen, everywhere
+
+
+def two_gaussians_in_line() -> Avatar:
+    """A wide opaque Gaussian 0 in front of (nearer +Z than) a smaller Gaussian 1, both on the pelvis."""
+    rest_joints = load_body_template("anny").rest_joints
+    skin_logits = torch.full((2, 24), -1e9)
+    skin_logits[:, 0] = 0.0
+    params = {
+        "means": rest_joints[0] + torch.tensor([[0.0, 0.0, 0.1], [0.0, 0.0, 0.0]]),
+        "quats": torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 2),
+        "log_scales": torch.tensor([[0.05, 0.05, 0.01], [0.03, 0.03, 0.01]]).log(),
+        "opacity_logits": torch.logit(torch.tensor([0.9, 0.9])),
+        "sh_dc": torch.zeros(2, 1, 3),
+        "sh_rest": torch.zeros(2, 0, 3),
+        "skin_logits": skin_logits,
+    }
+    return Avatar(params, rest_joints, sh_degree=0)
+
+
+def test_a_barely_seen_gaussian_behind_a_well_seen_one_still_shows():
+    avatar = two_gaussians_in_line()
+    centre = avatar.rest_joints[0]
+    K = torch.tensor([[60.0, 0.0, 16.0], [0.0, 60.0, 16.0], [0.0, 0.0, 1.0]])
+    camera = Camera(K, look_at(centre + torch.tensor([0.0, 0.0, 1.0]), centre, torch.tensor([0.0, 1.0, 0.0])), 32, 32)
+    shade = torch.tensor([1.0, 0.0])  # the front one well seen, the one behind it barely
+    least, _, alpha = least_seen_shade(avatar, torch.zeros(24, 3), camera, shade)
+    blended, _, _ = least_seen_shade(avatar, torch.zeros(24, 3), camera, shade, power=1.0)
+    assert alpha[16, 16] > 0.95
+    assert blended[16, 16] > 0.85  # an ordinary alpha blend hardly shows it
+    assert least[16, 16] < 0.6
+    assert least[0, 0] == 1.0  # no Gaussian there: nothing barely seen
 
 
 def test_colour_bar_puts_the_low_end_at_the_bottom():
-    lut = viridis_lut()
+    lut = look_lut()
     bar = _colour_bar(lut, 1e-4, 1e-1, 200, "label").astype(np.float32) / 255.0
     column = torch.from_numpy(bar[:, 8])
     coloured = (column - 1.0).abs().sum(1) > 0.02  # rows of the bar, not the white margin

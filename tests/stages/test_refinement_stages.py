@@ -98,7 +98,9 @@ def test_visibility_writes_record_and_picture(workspace: Path):
     assert visibility.shape == (len(Avatar.load(workspace / "avatar" / "000.ply")),)
     assert (visibility >= 0).all() and (visibility > 0).mean() > 0.5
     picture = read_image(workspace / "visibility" / "000.png")
-    assert picture.shape[1] > 3 * picture.shape[0]  # five views side by side and a colour bar
+    assert picture.shape[1] > 1.5 * picture.shape[0]  # two rows of three views, a colour bar, the regions
+    listed = result.output[result.output.index("by body region") :]
+    assert all(name in listed for name in ("armpits", "crotch", "inner arms", "torso"))
 
 
 def test_visibility_of_another_iteration_is_refused_and_nothing_changes(workspace: Path):
