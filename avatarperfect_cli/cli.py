@@ -203,7 +203,7 @@ def train_initial(
     ),  # fmt: skip
     sh_degree: int = typer.Option(1, help="Spherical-harmonics degree of the colours (0 to 3)."),
     seed: int = typer.Option(0, help="Random seed."),
-    refine_poses: bool = typer.Option(False, "--refine-poses", help="Also refine each frame's SMPL pose (real videos)."),
+    refine_poses: bool = typer.Option(False, "--refine-poses", help="Correct estimated poses: fit each frame's pose to its mask (keeping the motion smooth), then refine it with the avatar against the image. Use it for poses from an estimator, not for exact ones."),
     force: bool = typer.Option(False, "--force", help="Replace an existing workspace."),
     device: str = typer.Option("auto", help=DEVICE_HELP),
 ) -> None:
@@ -364,6 +364,10 @@ def apply_edit(
     erase: Optional[str] = typer.Option(None, "--erase", help="SuperSplat baseline: delete Gaussians in --region: center or splat (writes the next avatar iteration)."),
     list_edits: bool = typer.Option(False, "--list", help="List the registered edits (read-only: works while another stage runs)."),
     remove: Optional[int] = typer.Option(None, "--remove", help="Withdraw edit N."),
+    strength: str = typer.Option(
+        "default", "--strength", help="default, or strong: the edit wins over the video where they disagree (refine reports when an edit did not take)."
+    ),
+    edit_number: Optional[int] = typer.Option(None, "--edit", help="With --strength: change registered edit N's strength."),
 ) -> None:
     """Register a painted image as an edit (white = background, other colours = colour targets)."""
     from avatarperfect_cli.stages import apply_edit as stage
@@ -372,12 +376,16 @@ def apply_edit(
         stage.list_edits(workspace)
     elif remove is not None:
         stage.remove_edit(workspace, remove)
+    elif edit_number is not None:
+        stage.set_edit_strength(workspace, edit_number, strength)
     elif erase is not None:
         stage.erase_region(workspace, _required(region, "--erase needs --region MASK.png"), erase, pose)
     elif fill is not None:
         stage.fill_region(workspace, _required(region, "--fill needs --region MASK.png"), fill, pose, model_dir, prompt)
     else:
-        stage.apply_edit(workspace, _required(edited, "give the painted image: avatarperfect apply-edit WS EDITED.png"), pose, mask)
+        stage.apply_edit(
+            workspace, _required(edited, "give the painted image: avatarperfect apply-edit WS EDITED.png"), pose, mask, strength=strength
+        )
 
 
 @app.command("refine")

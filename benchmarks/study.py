@@ -1,7 +1,8 @@
 """The paper's user study (Table 2), reproduced with a simulated user on synthetic subjects.
 
     python benchmarks/study.py OUT_DIR [--presets default female tall] [--rounds 5] [--resolution 512]
-                               [--conditions initial ap-exact ...] [--seeds 0 1 2]
+                               [--conditions initial ap-exact ...] [--seeds 0 1 2] [--body fit|exact]
+                               [--pose-noise DEG]
 
 For each subject (a make-sample preset) and seed one initial avatar is trained (2000 iterations, that
 seed), then every condition runs `--rounds` rounds on its own copy of it (round r of seed s draws its
@@ -9,6 +10,11 @@ suggestion and refine with seed s * rounds + r). One seed decides little: the sa
 machine, or another thread count, moves one subject's five-round result by about 0.3 dB (numba's
 parallel sums add in another order, and training amplifies it), so several seeds report the mean gain
 and its spread. Layout: OUT_DIR/PRESET/sample, OUT_DIR/PRESET/seed-S/{initial-ws, CONDITION, ...}.
+The avatar's body is fitted to the masks (`--body fit`, what a user gets) or the subject's own (`exact`,
+the best case). With `--pose-noise DEG` the initial avatar trains on OUT_DIR/PRESET/sample/train-noisy,
+the training video with its poses perturbed as a pose estimator's (`motions.with_estimation_noise`), and
+with `train-initial --refine-poses`, as a user with estimated poses would; the simulated user and the
+held-out truth keep the subject's exact body and poses, and scoring uses the workspace's own body and offset.
     initial        no edits
     video-only     each round refines on the video alone (no suggestion, no edit): what the edits add to refine
     ap-exact       AvatarPerfect: suggested body pose + camera, simulated user with the true colours, refine
@@ -43,12 +49,13 @@ import torch
 
 from avatarperfect_cli.avatar.model import Avatar
 from avatarperfect_cli.avatar.rendering import render_avatar
-from avatarperfect_cli.datasets import load_people_snapshot
+from avatarperfect_cli.datasets import load_people_snapshot, write_people_snapshot
 from avatarperfect_cli.io import PoseFile, read_image, write_image
 from avatarperfect_cli.io.workspace import open_workspace
 from avatarperfect_cli.refinement.suggest import SuggestConfig
 from avatarperfect_cli.render.camera import rotation_about
 from avatarperfect_cli.sample.generate import make_sample
+from avatarperfect_cli.sample.motions import Motion, with_estimation_noise
 from avatarperfect_cli.sample.simulated_user import UserConfig, paint
 from avatarperfect_cli.sample.subject import SyntheticSubject
 from avatarperfect_cli.sample.texture import HIDDEN_REGIONS, REGION
@@ -227,19 +234,32 @@ def run_condition(name: str, initial: Path, out: Path, sample: Path, subject: Sy
     }
 
 
+def noisy_training_video(sample: Path, degrees: float) -> Path:
+    """SAMPLE/train-noisy: the training video with estimated poses (`with_estimation_noise`, seed 0)."""
+    noisy = sample / "train-noisy"
+    if not (noisy / "poses.npz").is_file():
+        video = load_people_snapshot(sample / "train")
+        motion = with_estimation_noise(Motion(video.body_pose.double().numpy(), video.transl.double().numpy()), degrees)
+        images = (video.images * 255.0).round().to(torch.uint8).numpy()  # the PNGs' own bytes
+        write_people_snapshot(noisy, images, video.masks.numpy(), motion.body_pose, motion.transl, video.camera,
+                              subject=json.loads((sample / "train" / "subject.json").read_text()))  # fmt: skip
+    return noisy
+
+
 def run_subject(preset: str, out: Path, rounds: int, resolution: int, iterations: int, conditions: Sequence[str],
-                seed: int, images: Path | None, body: str = "fit") -> dict:  # fmt: skip
+                seed: int, images: Path | None, body: str = "fit", pose_noise: float = 0.0) -> dict:  # fmt: skip
     """Every condition on the initial avatar of `seed`; writes the held-out picture to `images` (None: none)."""
     sample = out / "sample"
     if not (sample / "test" / "subject.json").is_file():
         make_sample(sample, preset, resolution)
+    training = noisy_training_video(sample, pose_noise) if pose_noise > 0 else sample / "train"
     out = out / f"seed-{seed}"
     out.mkdir(parents=True, exist_ok=True)
     initial = out / "initial-ws"
     if not (initial / "workspace.json").is_file():
         start = time.perf_counter()
-        fit = InitialFit(VideoSettings(), BodySettings(shape=body), iterations=iterations, seed=seed)
-        train_initial(sample / "train", initial, fit, force=True, progress=False)
+        fit = InitialFit(VideoSettings(), BodySettings(shape=body), iterations=iterations, seed=seed, refine_poses=pose_noise > 0)
+        train_initial(training, initial, fit, force=True, progress=False)
         print(f"  {preset} seed {seed}: initial avatar trained in {time.perf_counter() - start:.0f} s", flush=True)
     data = held_out(sample, 1)
     train_video = load_people_snapshot(sample / "train", downscale=1)
@@ -324,6 +344,9 @@ def main() -> None:
     parser.add_argument("--body", choices=("fit", "exact"), default="fit",
                         help="the avatar's body: fitted to the masks from anny's middle phenotype (what a user gets), "
                              "or the subject's own (the best case, a reference row)")  # fmt: skip
+    parser.add_argument("--pose-noise", type=float, default=0.0, metavar="DEG",
+                        help="train on poses perturbed as a pose estimator's: DEG per joint axis, DEG/2 on the root, "
+                             "DEG/2 cm on the translation; train-initial refines them (--refine-poses)")  # fmt: skip
     args = parser.parse_args()
     if "initial" not in args.conditions:
         args.conditions.insert(0, "initial")  # the gains are measured from it
@@ -335,12 +358,13 @@ def main() -> None:
             print(f"subject {preset}, seed {seed}", flush=True)
             images = args.out / "images" if seed == args.seeds[0] else None
             all_results[preset][seed] = run_subject(preset, args.out / preset, args.rounds, args.resolution, args.iterations,
-                                                    args.conditions, seed, images, args.body)  # fmt: skip
+                                                    args.conditions, seed, images, args.body, args.pose_noise)  # fmt: skip
             (args.out / "study.json").write_text(json.dumps(all_results, indent=2))
     per_subject = {preset: combine(list(all_results[preset].values()), args.conditions) for preset in args.presets}
     mean = combine(list(per_subject.values()), args.conditions)
     seeds = ", ".join(map(str, args.seeds))
-    text = [f"# Study: {len(args.presets)} subjects x seeds {seeds} x {args.rounds} rounds at {args.resolution}², {time.perf_counter() - start:.0f} s\n"]
+    setting = f"body {args.body}, pose noise {args.pose_noise:g}°"
+    text = [f"# Study: {len(args.presets)} subjects x seeds {seeds} x {args.rounds} rounds at {args.resolution}², {setting}, {time.perf_counter() - start:.0f} s\n"]
     text += [f"## Mean over {', '.join(args.presets)} (seeds {seeds}; train dPSNR: the worst round of all)\n", markdown_table(mean), ""]
     text += ["## Hidden regions one by one (mean)\n", markdown_table(mean, REGION_COLUMNS), ""]
     text += ["## Change from the initial avatar, per subject (mean over seeds, range)\n", gain_table(all_results, args.conditions), ""]

@@ -40,6 +40,17 @@ class Motion:
         return int(self.body_pose.shape[0])
 
 
+def with_estimation_noise(motion: Motion, degrees: float, seed: int = 0) -> Motion:
+    """`motion` as a pose estimator might report it: independent Gaussian noise on every frame, `degrees`
+    (standard deviation) on each joint's three axis-angle components, half that on the root orientation,
+    and `degrees` / 2 centimetres on each translation axis (3 degrees: posed joints about 5 cm off)."""
+    rng = np.random.default_rng(seed)
+    noise = rng.normal(0.0, np.deg2rad(degrees), size=motion.body_pose.shape)
+    noise[:, 0] *= 0.5
+    transl = motion.transl + rng.normal(0.0, 0.005 * degrees, size=motion.transl.shape)
+    return Motion(motion.body_pose + noise, transl)
+
+
 def concatenate(motions: list[Motion]) -> Motion:
     """The motions one after the other."""
     return Motion(np.concatenate([m.body_pose for m in motions]), np.concatenate([m.transl for m in motions]))

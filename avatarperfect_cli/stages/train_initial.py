@@ -21,8 +21,10 @@ from avatarperfect_cli.io.atomic import atomic_path
 from avatarperfect_cli.io import write_image
 from avatarperfect_cli.io.camera_json import camera_to_json
 from avatarperfect_cli.io.workspace import check_new_workspace, new_workspace, workspace_lock
+from avatarperfect_cli.training.body_fit import BodyFitConfig, fit_body, fit_picture
+from avatarperfect_cli.training.pose_fit import PoseFitConfig, fit_poses_to_masks
 from avatarperfect_cli.training.pose_refinement import PoseRefiner
-from avatarperfect_cli.training.body_fit import BodyFitConfig, check_masks, fit_body, fit_picture
+from avatarperfect_cli.training.silhouette import check_masks
 from avatarperfect_cli.training.template_offset import OffsetSearch, fit_transl_offset
 from avatarperfect_cli.training.trainer import TrainConfig, train, video_views
 
@@ -34,7 +36,7 @@ REFINED_POSES = "poses.npz"
 AUTO_OFFSET, FIT_OFFSET = "auto", "fit"
 # --body-shape: fit the body to the masks, take the dataset's (exact), or fit unless the dataset names its body (auto).
 BODY_SHAPES = ("auto", "fit", "exact")
-# The picture of the body fit in the workspace: the start and the fitted body over training masks.
+# The picture of the body and pose fit in the workspace: the start and the fitted body over training masks.
 BODY_FIT_PICTURE = "body_fit.png"
 
 
@@ -138,7 +140,7 @@ class InitialFit:
     iterations: int = 2000
     sh_degree: int = 1
     seed: int = 0
-    refine_poses: bool = False  # per-frame pose refinement, for real videos with approximate poses
+    refine_poses: bool = False  # fit the poses to the masks, then refine them with the avatar (estimated poses)
     device: torch.device = CPU
 
 
@@ -179,35 +181,51 @@ def _transl_offset(
 
 
 def _fit_body(
-    video: VideoDataset, template: BodyTemplate, body_model: dict, offset: torch.Tensor, progress: bool, console: Console
-) -> tuple[BodyTemplate, dict, torch.Tensor, np.ndarray]:
-    """The body fitted to the video's masks from `template` at `offset`: the fitted template, its description,
-    the offset (3,) and the before/after picture."""
-    config = BodyFitConfig()
-    anny = load_anny_model(default_cache_dir()) if body_model["name"] == "anny" else None
+    video: VideoDataset, start: BodyTemplate, body_model: dict, offset: torch.Tensor, anny: object | None,
+    progress: bool, console: Console, starts: tuple[dict[str, float], ...] | None = None,
+) -> tuple[BodyTemplate, dict, torch.Tensor]:  # fmt: skip
+    """The body fitted to the video's masks from the `start` template at `offset`, anny's phenotype with
+    `anny` (a loaded model) from `starts` (default: BodyFitConfig's): the fitted template, its description
+    and the offset (3,)."""
+    config = BodyFitConfig() if starts is None else BodyFitConfig(starts=starts)
     steps = (len(config.starts) if anny is not None else 1) * config.start_steps + config.shape_steps
-    start = time.perf_counter()
+    clock = time.perf_counter()
     with Progress(TextColumn("[bold]fitting the body"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   console=Console(stderr=True), transient=True, disable=not progress) as bar:  # fmt: skip
         task = bar.add_task("body", total=steps)
-        result = fit_body(video, offset, config, anny_model=anny, template=None if anny else template,
+        result = fit_body(video, offset, config, anny_model=anny, template=None if anny else start,
                           on_step=lambda: bar.advance(task))  # fmt: skip
     described = dict(body_model)
     if anny is not None:
         described["phenotype"] = result.phenotype
         fitted = build_anny_template(anny, result.phenotype)
     else:
-        fitted = template
+        fitted = start
     fitted = fitted.with_bone_offsets(result.bone_offsets)
     described["bone_offsets"] = result.bone_offsets.tolist()
-    picture, (iou_before, iou_after) = fit_picture(video, [(template, offset), (fitted, result.transl_offset)])
     shape = ", ".join(f"{name} {value:.2f}" for name, value in result.phenotype.items())
     console.print(
-        f"body fitted to the masks in {time.perf_counter() - start:.0f} s: silhouette IoU {iou_before:.3f} -> {iou_after:.3f}"
-        + (f" ({shape})" if shape else ""),
+        f"body fitted to the masks in {time.perf_counter() - clock:.0f} s: silhouette distance "
+        f"{result.start_loss:.2f} -> {result.loss:.2f} px" + (f" ({shape})" if shape else ""),
         soft_wrap=True,
     )
-    return fitted, described, result.transl_offset, picture
+    return fitted, described, result.transl_offset
+
+
+def _fit_poses(video: VideoDataset, template: BodyTemplate, progress: bool, console: Console) -> None:
+    """Fit the video's poses (translations with their offset) to its masks, in place."""
+    config = PoseFitConfig()
+    start = time.perf_counter()
+    with Progress(TextColumn("[bold]fitting the poses"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=Console(stderr=True), transient=True, disable=not progress) as bar:  # fmt: skip
+        task = bar.add_task("poses", total=config.steps)
+        result = fit_poses_to_masks(video, template, config, on_step=lambda: bar.advance(task))
+    video.body_pose, video.transl = result.body_pose, result.transl
+    console.print(
+        f"poses fitted to the masks in {time.perf_counter() - start:.0f} s: silhouette distance "
+        f"{result.start_loss:.2f} -> {result.loss:.2f} px",
+        soft_wrap=True,
+    )
 
 
 def _train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool, progress: bool) -> Path:
@@ -218,13 +236,27 @@ def _train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool,
         console.print(note, soft_wrap=True, markup=False, highlight=False)
     template, body_model = fit.body.template(video)
     fits_shape = fit.body.fits_shape(video)
-    if fits_shape:
+    if fits_shape or fit.refine_poses:
         check_masks(video)
     offset = _transl_offset(dataset, fit, video, template, body_model, console, search=fits_shape)
-    picture = None
+    start_row = (template, video.body_pose, video.transl + offset)
+    start_body = (template, dict(body_model))
+    anny = load_anny_model(default_cache_dir()) if fits_shape and body_model["name"] == "anny" else None
     if fits_shape:
-        template, body_model, offset, picture = _fit_body(video, template, body_model, offset, progress, console)
+        template, body_model, offset = _fit_body(video, *start_body, offset, anny, progress, console)
     video.transl = video.transl + offset
+    if fit.refine_poses:
+        _fit_poses(video, template, progress, console)
+        if fits_shape:  # the body was fitted to the given poses: fit it again to the fitted ones, then the poses
+            video.transl = video.transl - offset
+            starts = (body_model.get("phenotype", {}),)
+            template, body_model, offset = _fit_body(video, *start_body, offset, anny, progress, console, starts)
+            video.transl = video.transl + offset
+            _fit_poses(video, template, progress, console)
+    picture = None
+    if fits_shape or fit.refine_poses:
+        picture, (iou_start, iou_fitted) = fit_picture(video, [start_row, (template, video.body_pose, video.transl)])
+        console.print(f"silhouette IoU with the masks {iou_start:.3f} -> {iou_fitted:.3f} ({BODY_FIT_PICTURE} shows both)")
     avatar = Avatar.from_template(template, sh_degree=fit.sh_degree, body_model=body_model).to(fit.device)
     console.print(f"fitting {len(avatar):,} Gaussians to {len(video)} frames of {video.camera.width}x{video.camera.height}")
     config = TrainConfig(iterations=fit.iterations, seed=fit.seed)

@@ -99,20 +99,23 @@ def test_same_seed_same_ply(workspace: Path, tmp_path: Path):
     assert (again / "avatar" / "000.ply").read_bytes() == (workspace / "avatar" / "000.ply").read_bytes()
 
 
-def test_refine_poses_stores_the_video_poses(tmp_path: Path):
+def test_refine_poses_stores_the_fitted_poses(tmp_path: Path):
+    """--refine-poses fits the poses to the masks before training and stores them; the sample's poses are
+    exact, so the fitted ones stay near them."""
     import numpy as np
 
     from avatarperfect_cli.datasets import FrameRange, load_people_snapshot
 
     result = invoke("train-initial", SAMPLE / "train", tmp_path / "ws", *TRAIN_ARGS[:2], "--resolution", "32", "--frames", "0:59:20", "--refine-poses")
     assert result.exit_code == 0, result.output
+    assert "poses fitted to the masks" in result.output
+    assert (tmp_path / "ws" / train_initial_stage.BODY_FIT_PICTURE).is_file()
     assert open_workspace(tmp_path / "ws").manifest["refined_poses"] == "poses.npz"
     video = load_people_snapshot(SAMPLE / "train", FrameRange(0, 59, 20))
     with np.load(tmp_path / "ws" / "poses.npz") as poses:
         np.testing.assert_array_equal(poses["frame_ids"], [0, 20, 40])
-        # 40 steps stay before the refinement's start step (500): the poses are the video's own.
-        np.testing.assert_array_equal(poses["body_pose"], video.body_pose.numpy())
-        assert poses["transl"].shape == (3, 3)
+        assert poses["body_pose"].shape == (3, 24, 3) and poses["transl"].shape == (3, 3)
+        assert np.abs(poses["body_pose"] - video.body_pose.numpy()).mean() < np.deg2rad(2.0)
 
 
 def test_a_fitted_body_is_recorded_for_every_later_stage(tmp_path: Path):

@@ -1,5 +1,5 @@
-"""The body fit: the nearest-point kernel against brute force, and fits on the committed sample whose truth
-is known (its exact body, its translations moved by a known amount)."""
+"""The body fit on the committed sample whose truth is known (its exact body, its translations moved by a
+known amount)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,8 @@ from avatarperfect_cli.body import load_body_template
 from avatarperfect_cli.body.anny_model import default_cache_dir, load_anny_model
 from avatarperfect_cli.datasets import FrameRange, VideoDataset, load_people_snapshot
 from avatarperfect_cli.errors import AvatarPerfectError
-from avatarperfect_cli.training.body_fit import BodyFitConfig, _nearest_kernel, fit_body, fit_picture, silhouettes
+from avatarperfect_cli.training.body_fit import BodyFitConfig, fit_body, fit_picture
+from avatarperfect_cli.training.silhouette import silhouettes
 
 SAMPLE = Path(__file__).resolve().parents[2] / "examples" / "sample" / "train"
 QUICK = BodyFitConfig(frames=8, resolution=96, points=1500, contour_pixels=200, starts=({},), start_steps=40, shape_steps=60)
@@ -22,16 +23,6 @@ QUICK = BodyFitConfig(frames=8, resolution=96, points=1500, contour_pixels=200, 
 @pytest.fixture(scope="module")
 def video() -> VideoDataset:
     return load_people_snapshot(SAMPLE, FrameRange(0, 59, 3), downscale=1)
-
-
-def test_nearest_kernel_matches_brute_force() -> None:
-    rng = np.random.default_rng(1)
-    points = rng.uniform(-20.0, 120.0, size=(3, 400, 2))  # some outside the 100 x 80 image
-    queries = rng.uniform(0.0, 80.0, size=(3, 150, 2))
-    nearest = _nearest_kernel(points, queries, 100, 80, 4.0)
-    distances = np.linalg.norm(queries[:, :, None] - points[:, None], axis=-1)
-    chosen = np.take_along_axis(distances, nearest[..., None], axis=2)[..., 0]
-    np.testing.assert_allclose(chosen, distances.min(axis=2), rtol=0, atol=1e-12)
 
 
 def test_the_exact_body_moved_in_the_image_plane_is_put_back(video: VideoDataset) -> None:
@@ -59,7 +50,9 @@ def test_anny_fit_from_the_middle_lands_near_the_true_skeleton(video: VideoDatas
     assert float(fitted_error) < 0.02
     assert float(fitted_error) < float(start_error)
     assert all(0.0 < value < 1.0 for value in fit.phenotype.values())
-    picture, (iou_start, iou_fitted) = fit_picture(video, [(start, torch.zeros(3)), (fitted, fit.transl_offset)], columns=2, resolution=64)
+    picture, (iou_start, iou_fitted) = fit_picture(
+        video, [(start, video.body_pose, video.transl), (fitted, video.body_pose, video.transl + fit.transl_offset)], columns=2, resolution=64
+    )
     assert picture.shape[2] == 3 and picture.shape[1] == 2 * (picture.shape[0] // 2)
     assert iou_fitted > iou_start
 

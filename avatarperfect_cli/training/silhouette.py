@@ -1,0 +1,171 @@
+"""Silhouette distances between a posed body template and person masks, in pixels, differentiable in the
+posed points: what the body fit and the pose fit minimise.
+
+    outside   each projected template point's distance outside its frame's mask (the mask's distance
+              transform, sampled bilinearly): no part of the body sticks out of the person;
+    coverage  each mask-contour pixel's distance to the nearest projected template point (an exact grid
+              search): the body fills the person's outline.
+Both are Huber-robust, so a mask a few pixels off at its border moves nothing far.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numba
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from avatarperfect_cli.datasets import VideoDataset
+from avatarperfect_cli.datasets.people_snapshot import downscaled_camera
+from avatarperfect_cli.errors import AvatarPerfectError
+from avatarperfect_cli.render import Camera
+
+
+@dataclass
+class Silhouettes:
+    """The compared frames at the fit's resolution: camera, poses (T, 24, 3), transl (T, 3), outside distance
+    transforms (T, 1, h, w) in pixels, and contour pixel centres (T, M, 2)."""
+
+    camera: Camera
+    body_pose: torch.Tensor
+    transl: torch.Tensor
+    outside: torch.Tensor
+    contours: torch.Tensor
+
+
+def check_masks(video: VideoDataset) -> None:
+    """Raise AvatarPerfectError naming the first frame whose mask is empty or fills the whole frame."""
+    covered = video.masks.flatten(1).float().mean(dim=1)
+    unfit = torch.nonzero((covered == 0) | (covered == 1)).flatten()
+    if len(unfit):
+        index = int(unfit[0])
+        what = "empty" if covered[index] == 0 else "the whole frame"
+        raise AvatarPerfectError(f"the mask of frame {int(video.frame_ids[index])} is {what}: no body to fit")
+
+
+def silhouettes(video: VideoDataset, frames: torch.Tensor, resolution: int, contour_pixels: int) -> Silhouettes:
+    """The masks of `frames` (indices into the video) at about `resolution` pixels as distance fields.
+
+    Raises AvatarPerfectError naming the frame when a mask is empty or fills the whole frame.
+    """
+    factor = max(1, round(max(video.camera.width, video.camera.height) / resolution))
+    camera = downscaled_camera(video.camera, factor)
+    check_masks(video)
+    generator = np.random.default_rng(0)
+    outside, contours = [], []
+    for index in frames.tolist():
+        fine = video.masks[index]
+        mask = F.interpolate(fine.float()[None, None], size=(camera.height, camera.width), mode="area")[0, 0] >= 0.5
+        mask = mask.numpy().astype(np.uint8)
+        outside.append(cv2.distanceTransform(1 - mask, cv2.DIST_L2, 5))
+        border = mask & ~cv2.erode(mask, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
+        rows, cols = np.nonzero(border if border.any() else mask)
+        chosen = generator.choice(len(rows), contour_pixels, replace=len(rows) < contour_pixels)
+        contours.append(np.stack([cols[chosen], rows[chosen]], axis=1) + 0.5)
+    return Silhouettes(
+        camera,
+        video.body_pose[frames].float(),
+        video.transl[frames].float(),
+        torch.from_numpy(np.stack(outside))[:, None],
+        torch.from_numpy(np.stack(contours)).float(),
+    )
+
+
+def project(points: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """(..., 3) world points, metres -> (..., 2) pixel coordinates (x right, y down; pixel centres at +0.5)."""
+    in_camera = points @ camera.world_to_camera[:3, :3].T + camera.world_to_camera[:3, 3]
+    pixels = in_camera @ camera.K.T
+    return pixels[..., :2] / pixels[..., 2:].clamp_min(1e-3)
+
+
+def huber_distance(distance: torch.Tensor, delta: float) -> torch.Tensor:
+    return torch.where(distance < delta, 0.5 * distance * distance / delta, distance - 0.5 * delta)
+
+
+def silhouette_loss(posed: torch.Tensor, data: Silhouettes, huber: float) -> torch.Tensor:
+    """(T,) each compared frame's mean outside distance of its posed points plus mean coverage distance of
+    its contour pixels, pixels. posed: (T, P, 3) template points posed by the frames' poses, world frame, metres."""
+    pixels = project(posed, data.camera)  # (T, P, 2)
+    size = torch.tensor([data.camera.width, data.camera.height], dtype=pixels.dtype)
+    grid = (2.0 * pixels / size - 1.0)[:, :, None]  # (T, P, 1, 2)
+    outside = F.grid_sample(data.outside, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    # beyond the image the border's distance is a lower bound: add how far past the border a point is
+    beyond = (pixels - pixels.clamp(torch.zeros_like(size), size)).norm(dim=-1)
+    outside_loss = huber_distance(outside[:, 0, :, 0] + beyond, huber).mean(dim=1)
+    nearest = _nearest_points(pixels, data)
+    coverage = (data.contours - pixels.gather(1, nearest[..., None].expand(-1, -1, 2))).norm(dim=-1)
+    return outside_loss + huber_distance(coverage, huber).mean(dim=1)
+
+
+# Side of the grid cells, pixels, in which `_nearest_kernel` files the projected points.
+_NEAREST_CELL = 4.0
+
+
+@numba.njit(cache=True)
+def _nearest_kernel(points: np.ndarray, queries: np.ndarray, width: int, height: int, cell: float) -> np.ndarray:
+    """(T, M) index of the nearest of `points` (T, P, 2) to each of `queries` (T, M, 2), exactly: the points
+    are filed in a grid of `cell`-pixel cells over the image (outside ones in its border cells) and each
+    query searches rings of cells outward until no unsearched cell can hold a nearer point."""
+    frames, count = points.shape[0], points.shape[1]
+    columns, rows = int(width / cell) + 1, int(height / cell) + 1
+    nearest = np.empty((frames, queries.shape[1]), np.int64)
+    for frame in range(frames):
+        cell_of = np.empty(count, np.int64)
+        starts = np.zeros(columns * rows + 1, np.int64)
+        for index in range(count):
+            column = min(max(int(points[frame, index, 0] / cell), 0), columns - 1)
+            row = min(max(int(points[frame, index, 1] / cell), 0), rows - 1)
+            cell_of[index] = row * columns + column
+            starts[cell_of[index] + 1] += 1
+        for slot in range(columns * rows):
+            starts[slot + 1] += starts[slot]
+        filled = starts[:-1].copy()
+        order = np.empty(count, np.int64)
+        for index in range(count):
+            order[filled[cell_of[index]]] = index
+            filled[cell_of[index]] += 1
+        for query in range(queries.shape[1]):
+            x, y = queries[frame, query, 0], queries[frame, query, 1]
+            home_column = min(max(int(x / cell), 0), columns - 1)
+            home_row = min(max(int(y / cell), 0), rows - 1)
+            best, best_index = np.inf, -1
+            for ring in range(max(columns, rows)):
+                for row in range(home_row - ring, home_row + ring + 1):
+                    if row < 0 or row >= rows:
+                        continue
+                    step = 1 if row in (home_row - ring, home_row + ring) else 2 * ring
+                    for column in range(home_column - ring, home_column + ring + 1, max(step, 1)):
+                        if column < 0 or column >= columns:
+                            continue
+                        slot = row * columns + column
+                        for position in range(starts[slot], starts[slot + 1]):
+                            index = order[position]
+                            dx, dy = points[frame, index, 0] - x, points[frame, index, 1] - y
+                            distance = dx * dx + dy * dy
+                            if distance < best:
+                                best, best_index = distance, index
+                if best_index >= 0 and best <= (ring * cell) ** 2:
+                    break
+            nearest[frame, query] = best_index
+    return nearest
+
+
+def _nearest_points(pixels: torch.Tensor, data: Silhouettes) -> torch.Tensor:
+    """(T, M) index of the projected point (pixels (T, P, 2)) nearest to each contour pixel."""
+    points = pixels.detach().numpy().astype(np.float64)
+    queries = data.contours.numpy().astype(np.float64)
+    return torch.from_numpy(_nearest_kernel(points, queries, data.camera.width, data.camera.height, _NEAREST_CELL))
+
+
+
+def surface_points(vertices: torch.Tensor, faces: torch.Tensor, count: int) -> torch.Tensor:
+    """(count,) indices of template vertices drawn without replacement by their share of the surface area
+    (a fixed draw), so dense parts such as the face and the hands do not dominate."""
+    corners = vertices[faces]
+    areas = 0.5 * torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]).norm(dim=-1)
+    vertex_areas = torch.zeros(len(vertices)).index_add_(0, faces.reshape(-1), areas.repeat_interleave(3))
+    generator = torch.Generator().manual_seed(0)
+    return torch.multinomial(vertex_areas, min(count, int((vertex_areas > 0).sum())), replacement=False, generator=generator)
