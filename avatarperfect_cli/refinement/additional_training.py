@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -60,6 +60,20 @@ from avatarperfect_cli.training.trainer import TrainConfig, TrainingView
 # up), worst training round +0.20 dB (all nine up; none past -0.3 dB), hidden regions -0.16 dB (docs/study.md).
 EDIT_LOSS_WEIGHT = 0.25
 
+
+EDIT_STRENGTHS = ("default", "strong")
+# A strong edit wins over the video where they disagree (`apply-edit --strength strong`): its loss weighs
+# STRONG_LOSS_WEIGHT of a video step's, it is drawn STRONG_DRAWS times as often as a default edit would be
+# (on top of the steps the other edits and the video get, up to MAX_EDIT_STEP_SHARE of all steps)
+# (`strong_edit_training`), and the Gaussians its strokes show learn positions and shapes at GART's rates, as
+# the barely seen ones do, and colours at STRONG_COLOUR_RATE times GART's (`strong_edit_rate_scales`). Adam
+# moves a parameter by at most about its rate a step, whatever the weights: at GART's colour rate a blue
+# shirt needs about 600 steps to turn magenta, more than a refine has.
+STRONG_LOSS_WEIGHT = 1.0
+STRONG_DRAWS = 3.0
+MAX_EDIT_STEP_SHARE = 0.6
+STRONG_COLOUR_RATE = 10.0
+COLOUR_PARAMETERS = ("sh_dc", "sh_rest")
 
 # Blend weight over a new edit's strokes, pixels, from which a barely seen Gaussian wider than 5 mm is split in
 # two before training (`split_barely_seen_under_edits`): about 1,000 of the ~48,000 Gaussians per edit on
@@ -148,6 +162,14 @@ def delete_background(
     return delete_gaussians(avatar, delete), delete
 
 
+def painted_weight(avatar: Avatar, edits: Sequence[TrainingView]) -> torch.Tensor:
+    """(N,) float64: each Gaussian's blend weight summed over the edit views' loss masks M_k, pixels."""
+    painted = torch.zeros(len(avatar), dtype=torch.float64, device=avatar.device)
+    for edit in edits:
+        painted += painted_visibility(avatar, PoseFile(edit.body_pose, edit.transl, edit.camera), edit.loss_mask.double())
+    return painted
+
+
 def split_barely_seen_under_edits(
     avatar: Avatar, seen: torch.Tensor, edits: list[TrainingView], min_painted: float, seed: int
 ) -> tuple[Avatar, torch.Tensor, int]:
@@ -160,9 +182,7 @@ def split_barely_seen_under_edits(
     An edit can only teach detail as fine as the Gaussians under its strokes, and refine does not densify
     (`refine_config`): the barely seen ones keep the initial fit's sizes, about as wide as the checker
     cells of the sample's hidden regions (docs/study.md)."""
-    painted = torch.zeros(len(avatar), dtype=torch.float64, device=avatar.device)
-    for edit in edits:
-        painted += painted_visibility(avatar, PoseFile(edit.body_pose, edit.transl, edit.camera), edit.loss_mask.double())
+    painted = painted_weight(avatar, edits)
     densify = DensifyConfig()
     large = avatar.params["log_scales"].detach().amax(dim=-1) > math.log(densify.clone_max_scale)
     split = ~seen & (painted >= min_painted) & large
@@ -230,6 +250,22 @@ def edit_draw_weights(edits: Sequence[int], new: set[int], new_share: float | No
     return [new_share / new_count if number in new else (1.0 - new_share) / old_count for number in edits]
 
 
+def strong_edit_training(
+    views: Sequence[TrainingView], strong: Sequence[bool], step_share: float, edit_loss_weight: float
+) -> tuple[list[TrainingView], float]:
+    """The edit `views` (their draw weights set, `edit_draw_weights`) with the `strong` ones' draws multiplied
+    by STRONG_DRAWS and their loss by STRONG_LOSS_WEIGHT / `edit_loss_weight`, and the share of steps that draw
+    an edit raised so that the other edits keep their draws (at most MAX_EDIT_STEP_SHARE)."""
+    total = sum(view.draw_weight for view in views)
+    views = [
+        replace(view, draw_weight=view.draw_weight * STRONG_DRAWS, loss_weight=STRONG_LOSS_WEIGHT / edit_loss_weight) if is_strong else view
+        for view, is_strong in zip(views, strong)
+    ]
+    if total > 0.0:
+        step_share = min(MAX_EDIT_STEP_SHARE, step_share * sum(view.draw_weight for view in views) / total)
+    return views, step_share
+
+
 def edit_step_share(edit_probability: float, new_share: float | None, new_count: int, old_count: int) -> float:
     """Share of a refine's steps that draw an edit: `edit_probability`, except when every edit is new (the
     first refine): then only the new edits' part of it (`new_share`), the rest going to the video, so that
@@ -273,6 +309,18 @@ def barely_seen_rate_scales(seen: torch.Tensor) -> dict[str, torch.Tensor]:
     barely = (~seen).float()
     factors = {"means": BARELY_SEEN_MEANS_FACTOR, "quats": 1.0 / REFINE_SHAPE_RATE_FACTOR, "log_scales": 1.0 / REFINE_SHAPE_RATE_FACTOR}
     return {name: 1.0 + (factor - 1.0) * barely for name, factor in factors.items()}
+
+
+def strong_edit_rate_scales(shown: torch.Tensor, rate_scales: dict[str, torch.Tensor] | None) -> dict[str, torch.Tensor]:
+    """`rate_scales` (`train`'s per-Gaussian factors, or None) with the Gaussians a strong edit shows (`shown`
+    (N,) bool) learning positions and shapes at least at GART's rates (`barely_seen_rate_scales`) and colours
+    at STRONG_COLOUR_RATE times theirs."""
+    scales = dict(rate_scales or {})
+    for name, factor in barely_seen_rate_scales(~shown).items():
+        scales[name] = torch.maximum(scales[name], factor) if name in scales else factor
+    for name in COLOUR_PARAMETERS:
+        scales[name] = 1.0 + (STRONG_COLOUR_RATE - 1.0) * shown.float()
+    return scales
 
 
 def refine_config(settings: RefineSettings) -> TrainConfig:

@@ -26,7 +26,9 @@ from avatarperfect_cli.io import PoseFile, atomic_write_text, read_image, read_p
 from avatarperfect_cli.io.images import image_size
 from avatarperfect_cli.io.atomic import atomic_folder
 from avatarperfect_cli.io.workspace import Workspace, locked_workspace, reading_workspace
+from avatarperfect_cli.refinement.additional_training import EDIT_STRENGTHS
 from avatarperfect_cli.refinement.edit_image import EditMasks, derive_edit_masks, read_painted_image, read_user_mask
+from avatarperfect_cli.refinement.edit_progress import paint_error
 from avatarperfect_cli.refinement.erase import ERASE_MODES, delete_gaussians, select_in_region
 from avatarperfect_cli.refinement.inpaint import OPENCV_METHODS, fill_diffusion, fill_flat, fill_opencv, parse_colour
 from avatarperfect_cli.stages.workspace_data import EDITS, applied_edits, latest_suggestion, registered_edits
@@ -60,7 +62,12 @@ def edit_source(workspace: Workspace, pose_path: Path | None) -> EditSource:
     return EditSource(read_image(folder / "suggested.png", "RGB"), read_pose(folder / "pose.json"), f"suggestion {folder.name}")
 
 
-def register_edit(workspace: Workspace, edited: Path, source: EditSource, masks: EditMasks) -> Path:
+def check_strength(strength: str) -> None:
+    if strength not in EDIT_STRENGTHS:
+        raise AvatarPerfectError(f"--strength must be one of {', '.join(EDIT_STRENGTHS)}, got {strength!r}")
+
+
+def register_edit(workspace: Workspace, edited: Path, source: EditSource, masks: EditMasks, strength: str = "default") -> Path:
     """Write ws/edits/NNN/ atomically; returns the folder."""
     folder = workspace.next_numbered_folder(EDITS)
     counts = masks.counts()
@@ -76,6 +83,9 @@ def register_edit(workspace: Workspace, edited: Path, source: EditSource, masks:
             "avatar_iteration": workspace.iteration,
             "time": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "pixels": counts,
+            "strength": strength,
+            # refine reports how far it went from here toward the paint (refinement/edit_progress.py)
+            "painted_over_error": paint_error(source.image, masks.target, masks.edit),
         }
         atomic_write_text(staging / "edit.json", json.dumps(record, indent=2) + "\n")
     return folder
@@ -83,10 +93,11 @@ def register_edit(workspace: Workspace, edited: Path, source: EditSource, masks:
 
 def apply_edit(
     workspace_root: Path, edited: Path, pose: Path | None = None, mask: Path | None = None, progress: bool = True,
-    hint: bool = True,
+    hint: bool = True, strength: str = "default",
 ) -> Path:  # fmt: skip
     """Register the painted image `edited` (see the module doc); returns the edit's folder. hint: print the
-    command to run next."""
+    command to run next; strength: how refine weighs the edit against the video (`EDIT_STRENGTHS`)."""
+    check_strength(strength)
     console = Console(stderr=True, quiet=not progress)
     with locked_workspace(workspace_root) as workspace:
         source = edit_source(workspace, pose)
@@ -104,11 +115,11 @@ def apply_edit(
         masks = derive_edit_masks(painted, source.image, user_mask=user_mask)
         if not masks.edit.any():
             raise UnchangedImage(f"{edited}: no pixel differs from {source.origin}; nothing to register")
-        folder = register_edit(workspace, Path(edited), source, masks)
+        folder = register_edit(workspace, Path(edited), source, masks, strength)
     counts = masks.counts()
     console.print(
         f"registered edit {folder.name} over {source.origin}: {counts['edited']:,} pixels "
-        f"({counts['background']:,} background, {counts['colour']:,} colour)"
+        f"({counts['background']:,} background, {counts['colour']:,} colour)" + ("" if strength == "default" else f", {strength}")
     )
     if hint:
         console.print(f"next: avatarperfect refine {workspace_root}", highlight=False)
@@ -124,16 +135,27 @@ def list_edits(workspace_root: Path) -> list[dict]:
             applied |= set(entry.get("edits", []))
         records = [json.loads((edit.folder / "edit.json").read_text()) | {"number": edit.number} for edit in edits]
     table = Table(title=f"{len(records)} edits in {workspace_root}")
-    for column in ("edit", "painted over", "pixels", "background", "registered", "refined"):
+    for column in ("edit", "painted over", "pixels", "background", "strength", "registered", "refined"):
         table.add_column(column)
     for record in records:
         pixels = record["pixels"]
         table.add_row(
             f"{record['number']:03d}", record["painted_over"], f"{pixels['edited']:,}", f"{pixels['background']:,}",
-            record["time"], "yes" if record["number"] in applied else "not yet",
+            record.get("strength", "default"), record["time"], "yes" if record["number"] in applied else "not yet",
         )  # fmt: skip
     Console().print(table)
     return records
+
+
+def set_edit_strength(workspace_root: Path, number: int, strength: str) -> None:
+    """Change edit `number`'s strength (its edit.json, rewritten atomically); the next refine trains it so."""
+    check_strength(strength)
+    with locked_workspace(workspace_root) as workspace:
+        path = workspace.root / EDITS / f"{number:03d}" / "edit.json"
+        if not path.is_file():
+            raise AvatarPerfectError(f"{workspace_root}: no edit {number} (see 'apply-edit --list')")
+        record = json.loads(path.read_text()) | {"strength": strength}
+        atomic_write_text(path, json.dumps(record, indent=2) + "\n")
 
 
 def remove_edit(workspace_root: Path, number: int) -> None:

@@ -21,16 +21,21 @@ from avatarperfect_cli.body import load_described_template
 from avatarperfect_cli.errors import AvatarPerfectError
 from avatarperfect_cli.io.workspace import locked_workspace
 from avatarperfect_cli.refinement.additional_training import (
+    SPLIT_PAINTED,
     RefineSettings,
     barely_seen_rate_scales,
     delete_background,
     edit_draw_weights,
     edit_step_share,
+    painted_weight,
     pull_toward_template_skinning,
     refine_config,
     seen_by_the_video,
     split_barely_seen_under_edits,
+    strong_edit_rate_scales,
+    strong_edit_training,
 )
+from avatarperfect_cli.refinement.edit_progress import EditProgress, rendered_paint_error
 from avatarperfect_cli.refinement.visibility import DEFAULT_EDIT_WEIGHT
 from avatarperfect_cli.stages.visibility import current_visibility
 from avatarperfect_cli.stages.workspace_data import applied_edits, load_video, registered_edits
@@ -52,6 +57,11 @@ def refine(workspace_root: Path, settings: RefineSettings | None = None, progres
         new_edits = [edit for edit in edits if edit.number not in done]
         protect = settings.protect_seen and any(bool(edit.background().any()) for edit in new_edits)
         views = {edit.number: edit.training_view() for edit in edits}
+        strong = [edit.strength == "strong" for edit in edits]
+        start_errors = {edit.number: edit.record().get("painted_over_error") for edit in edits}
+        for number, error in start_errors.items():
+            if error is None:  # registered before the error was recorded: measured from this refine's start
+                start_errors[number] = rendered_paint_error(avatar, views[number])
         seen = None
         if edits and (protect or settings.barely_seen_rates or settings.split_painted is not None):
             seen = seen_by_the_video(current_visibility(workspace, avatar, DEFAULT_EDIT_WEIGHT, progress).visibility)
@@ -64,6 +74,9 @@ def refine(workspace_root: Path, settings: RefineSettings | None = None, progres
                 avatar, seen, [views[edit.number] for edit in new_edits], settings.split_painted, settings.seed
             )
         rate_scales = barely_seen_rate_scales(seen) if seen is not None and settings.barely_seen_rates else None
+        if any(strong):
+            shown = painted_weight(avatar, [views[edit.number] for edit, is_strong in zip(edits, strong) if is_strong])
+            rate_scales = strong_edit_rate_scales(shown >= SPLIT_PAINTED, rate_scales)
         deleted = int(deleted.sum())
         video = load_video(workspace)
         if settings.template_skinning > 0.0:
@@ -78,8 +91,10 @@ def refine(workspace_root: Path, settings: RefineSettings | None = None, progres
         weights = edit_draw_weights([edit.number for edit in edits], {edit.number for edit in new_edits}, settings.new_edit_share)
         edit_views = [replace(views[edit.number], draw_weight=weight) for edit, weight in zip(edits, weights)]
         step_share = edit_step_share(settings.edit_probability, settings.new_edit_share, len(new_edits), len(edits) - len(new_edits))
+        edit_views, step_share = strong_edit_training(edit_views, strong, step_share, settings.edit_loss_weight)
         config = refine_config(replace(settings, edit_probability=step_share))
         train(avatar, video_views(video), edit_views, config, progress=progress, rate_scales=rate_scales)
+        reached = [EditProgress(edit.number, start_errors[edit.number], rendered_paint_error(avatar, views[edit.number])) for edit in edits]
         iteration = max(workspace.committed_avatars()) + 1
         path = workspace.avatar_path(iteration)
         avatar.save(path)
@@ -104,13 +119,34 @@ def refine(workspace_root: Path, settings: RefineSettings | None = None, progres
                 "template_shift_mm": settings.template_shift * 1e3,
                 "reanchor": settings.reanchor,
                 "seed": settings.seed,
+                "strong_edits": [edit.number for edit, is_strong in zip(edits, strong) if is_strong],
+                "edit_progress": {f"{item.number:03d}": round(item.share, 3) for item in reached},
                 "seconds": round(seconds, 1),
                 "gaussians": len(avatar),
             },
             iteration,
         )
     console.print(f"wrote {path} ({len(avatar):,} Gaussians, {seconds:.0f} s)")
+    for progress_line in progress_lines(workspace_root, reached, strong):
+        console.print(progress_line, highlight=False, soft_wrap=True)
     return path
+
+
+def progress_lines(workspace_root: Path, reached: list[EditProgress], strong: list[bool]) -> list[str]:
+    """One line per edit: the share of the way to its paint refine reached inside its mask, and for an edit
+    not reached (`EditProgress.reached`) what to do about it."""
+    lines = []
+    for progress, is_strong in zip(reached, strong):
+        line = f"edit {progress.number:03d}{' (strong)' if is_strong else ''}: {progress.share:.0%} of the way to the paint inside its mask"
+        if not progress.reached and is_strong:
+            line += "; the video still disagrees there: refine again, or paint it in a pose nearer the video's"
+        elif not progress.reached:
+            line += (
+                f"; the video disagrees there and won. If the paint is right: "
+                f"avatarperfect apply-edit {workspace_root} --edit {progress.number} --strength strong, then refine"
+            )
+        lines.append(line)
+    return lines
 
 
 def revert(workspace_root: Path, iteration: int) -> None:

@@ -6,11 +6,13 @@ camera and reference pose, and its registered edits.
     ws/edits/NNN/mask.png        M_k, the supervised pixels (white = in)
     ws/edits/NNN/background.png  the pixels painted as background (white = in)
     ws/edits/NNN/pose.json       the body pose and camera the edit was painted in
-    ws/edits/NNN/edit.json       provenance: source file, suggestion, time, pixel counts
+    ws/edits/NNN/edit.json       provenance: source file, suggestion, time, pixel counts; the edit's strength
+                                 and the error of the image painted over inside M_k (refinement/edit_progress.py)
 """
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,6 +24,7 @@ from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
 from avatarperfect_cli.io import PoseFile, read_image, read_pose
 from avatarperfect_cli.io.camera_json import camera_from_json
 from avatarperfect_cli.io.workspace import MANIFEST, Workspace
+from avatarperfect_cli.refinement.additional_training import EDIT_STRENGTHS
 from avatarperfect_cli.render import Camera
 from avatarperfect_cli.training.trainer import TrainingView
 
@@ -123,6 +126,25 @@ class RegisteredEdit:
 
     def background(self) -> torch.Tensor:
         return read_image(self.folder / "background.png", "L")[..., 0] >= 0.5
+
+    def record(self) -> dict:
+        """edit.json's content; one line naming the file when it is not a JSON object."""
+        path = self.folder / "edit.json"
+        try:
+            record = json.loads(path.read_text())
+        except (OSError, ValueError) as error:
+            raise InputFileError(path, f"not readable JSON ({error})") from None
+        if not isinstance(record, dict):
+            raise InputFileError(path, "not a JSON object")
+        return record
+
+    @property
+    def strength(self) -> str:
+        """How refine weighs the edit against the video ("default" for edits registered without one)."""
+        strength = self.record().get("strength", "default")
+        if strength not in EDIT_STRENGTHS:
+            raise InputFileError(self.folder / "edit.json", f"unknown strength {strength!r}; use one of {', '.join(EDIT_STRENGTHS)}")
+        return strength
 
 
 def registered_edits(workspace: Workspace) -> list[RegisteredEdit]:

@@ -4,6 +4,7 @@ barely seen Gaussians under edits, the pull toward the template's skinning, the 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -15,8 +16,12 @@ from avatarperfect_cli.errors import AvatarPerfectError
 from avatarperfect_cli.io.pose_json import PoseFile
 from avatarperfect_cli.refinement.additional_training import (
     EDIT_LOSS_WEIGHT,
+    MAX_EDIT_STEP_SHARE,
     REFINE_MEANS_RATE,
     REFINE_SHAPE_RATE_FACTOR,
+    STRONG_COLOUR_RATE,
+    STRONG_DRAWS,
+    STRONG_LOSS_WEIGHT,
     RefineSettings,
     barely_seen_rate_scales,
     delete_background,
@@ -26,6 +31,8 @@ from avatarperfect_cli.refinement.additional_training import (
     refine_config,
     seen_by_the_video,
     split_barely_seen_under_edits,
+    strong_edit_rate_scales,
+    strong_edit_training,
 )
 from avatarperfect_cli.render import Camera, look_at
 from avatarperfect_cli.training.trainer import TrainConfig, TrainingView
@@ -265,6 +272,31 @@ def test_barely_seen_gaussians_get_the_first_fits_rates_and_the_others_refines()
     for name, scale in scales.items():
         assert scale[seen].tolist() == [1.0, 1.0]
         torch.testing.assert_close(scale[~seen] * refine_rates.at(name, 0), torch.full((2,), gart.at(name, 0)))
+
+
+def test_a_strong_edit_is_drawn_more_and_weighs_more_and_the_others_keep_their_draws():
+    view = TrainingView(torch.zeros(4, 4, 3), torch.ones(4, 4, dtype=torch.bool), torch.zeros(24, 3), torch.zeros(3), camera())
+    views = [replace(view, draw_weight=0.25), replace(view, draw_weight=0.75)]
+    trained, share = strong_edit_training(views, [False, True], 0.2, EDIT_LOSS_WEIGHT)
+    assert [v.draw_weight for v in trained] == [0.25, 0.75 * STRONG_DRAWS]
+    assert trained[0].loss_weight == 1.0 and EDIT_LOSS_WEIGHT * trained[1].loss_weight == pytest.approx(STRONG_LOSS_WEIGHT)
+    # the default edit is drawn in as many steps as before: 0.2 * 0.25 of them
+    assert share * 0.25 / sum(v.draw_weight for v in trained) == pytest.approx(0.2 * 0.25)
+    assert strong_edit_training(views, [False, False], 0.2, EDIT_LOSS_WEIGHT) == (views, 0.2)
+    assert strong_edit_training(views, [True, True], 0.5, EDIT_LOSS_WEIGHT)[1] == MAX_EDIT_STEP_SHARE
+
+
+def test_the_gaussians_a_strong_edit_shows_move_like_the_barely_seen_and_recolour_faster():
+    seen = torch.tensor([True, True, False, False])
+    shown = torch.tensor([True, False, True, False])
+    scales = strong_edit_rate_scales(shown, barely_seen_rate_scales(seen))
+    for name in ("means", "quats", "log_scales"):
+        gart = float(barely_seen_rate_scales(torch.tensor([False]))[name][0])  # GART's rate over refine's
+        assert gart > 1.0
+        # shown or barely seen: GART's rates; seen and not shown: refine's
+        assert scales[name].tolist() == pytest.approx([gart, 1.0, gart, gart])
+        assert strong_edit_rate_scales(shown, None)[name].tolist() == pytest.approx([gart, 1.0, gart, 1.0])
+    assert scales["sh_dc"].tolist() == scales["sh_rest"].tolist() == [STRONG_COLOUR_RATE, 1.0, STRONG_COLOUR_RATE, 1.0]
 
 
 @pytest.mark.parametrize(

@@ -245,6 +245,71 @@ def test_apply_edit_refine_revert_loop(workspace: Path, tmp_path: Path):
     assert sorted(p.name for p in (workspace / "avatar").iterdir()) == ["000.ply", "001.ply", "002.ply", "003.ply"]
 
 
+def _paint_torso_square(workspace: Path, tmp_path: Path) -> tuple[Path, Path, torch.Tensor, torch.Tensor]:
+    """The avatar in the video's first pose, a magenta square painted over the middle of its spine: the
+    painting, its pose file, the painted image and the square."""
+    from avatarperfect_cli.avatar.rendering import render_avatar
+    from avatarperfect_cli.body import forward_kinematics
+    from avatarperfect_cli.io import write_pose
+    from avatarperfect_cli.stages.workspace_data import reference_pose
+
+    pose = reference_pose(open_workspace(workspace))
+    avatar = Avatar.load(workspace / "avatar" / "000.ply")
+    with torch.no_grad():
+        image = render_avatar(avatar, pose.body_pose, pose.transl, pose.camera, torch.ones(3)).image.clamp(0, 1)
+    spine = forward_kinematics(pose.body_pose[None], avatar.rest_joints, pose.transl[None])[0, 6, :3, 3]
+    point = pose.camera.K @ (pose.camera.world_to_camera[:3, :3] @ spine + pose.camera.world_to_camera[:3, 3])
+    column, row = (point[:2] / point[2]).round().long().tolist()
+    square = torch.zeros(image.shape[:2], dtype=torch.bool)
+    square[row - 3 : row + 3, column - 3 : column + 3] = True
+    painted = torch.round(image * 255) / 255
+    painted[square] = torch.tensor([1.0, 0.0, 1.0])
+    edited, pose_path = tmp_path / "square.png", tmp_path / "pose.json"
+    write_image(edited, painted)
+    write_pose(pose_path, pose)
+    return edited, pose_path, painted, square
+
+
+def test_refine_reports_each_edits_share_and_a_strong_edit_beats_the_video(trained: Path, tmp_path: Path):
+    """A flat square painted over the torso in a pose the video shows: the default refine says in one line
+    how much of the way to the paint it went (and how to make the edit win); the same edit registered strong
+    comes out nearer the paint."""
+    from avatarperfect_cli.avatar.rendering import render_avatar
+
+    errors = {}
+    for strength in ("default", "strong"):
+        workspace = tmp_path / strength
+        shutil.copytree(trained, workspace)
+        edited, pose_path, painted, square = _paint_torso_square(workspace, tmp_path)
+        result = invoke("apply-edit", workspace, edited, "--pose", pose_path, "--strength", strength)
+        assert result.exit_code == 0, result.output
+        assert json.loads((workspace / "edits" / "001" / "edit.json").read_text())["strength"] == strength
+        result = invoke("refine", workspace, "--iterations", "40")
+        assert result.exit_code == 0, result.output
+        share = open_workspace(workspace).manifest["history"][-1]["edit_progress"]["001"]
+        lines = [line for line in result.output.splitlines() if line.startswith("edit 001")]
+        assert len(lines) == 1 and f"{share:.0%} of the way to the paint" in lines[0], result.output
+        if strength == "default" and share < 0.5:
+            assert f"apply-edit {workspace} --edit 1 --strength strong" in lines[0]
+        avatar = Avatar.load(open_workspace(workspace).require_avatar())
+        pose = read_pose(pose_path)
+        with torch.no_grad():
+            image = render_avatar(avatar, pose.body_pose, pose.transl, pose.camera, torch.ones(3)).image.clamp(0, 1)
+        errors[strength] = float(((image - painted)[square] ** 2).mean())
+    assert errors["strong"] < 0.5 * errors["default"], errors
+
+
+def test_apply_edit_changes_a_registered_edits_strength(workspace: Path, tmp_path: Path):
+    edited, pose_path, _, _ = _paint_torso_square(workspace, tmp_path)
+    assert invoke("apply-edit", workspace, edited, "--pose", pose_path).exit_code == 0
+    record = workspace / "edits" / "001" / "edit.json"
+    assert json.loads(record.read_text())["strength"] == "default"
+    assert invoke("apply-edit", workspace, "--edit", "1", "--strength", "strong").exit_code == 0
+    assert json.loads(record.read_text())["strength"] == "strong"
+    assert "--strength" in one_line_error(invoke("apply-edit", workspace, "--edit", "1", "--strength", "huge"))
+    assert "no edit 2" in one_line_error(invoke("apply-edit", workspace, "--edit", "2", "--strength", "strong"))
+
+
 def test_refine_gives_the_barely_seen_gaussians_the_first_fits_rates(workspace: Path, tmp_path: Path, monkeypatch):
     """With an edit, the Gaussians the video saw less than average (V < mean V, of those the edit's stroke left)
     learn positions and shapes at GART's rates, the others at refine's; --slow-barely-seen keeps refine's."""
