@@ -1,6 +1,6 @@
 """A paint that contradicts the video: a flat square on the torso at a held-out pose, refined at each strength.
 
-    python -m benchmarks.edit_strength WORKSPACE SAMPLE_DIR [--frame 4] [--colour 1,0,1] [--images docs/images]
+    python -m benchmarks.edit_strength WORKSPACE SAMPLE_DIR [--frame 19] [--colour 1,0,1] [--images docs/images]
 
 WORKSPACE: a workspace trained on SAMPLE_DIR/train (after train-initial). On a copy per strength, the avatar
 is rendered in held-out frame --frame of SAMPLE_DIR/test, a square (a sixteenth of the image side) of
@@ -54,9 +54,10 @@ def painted_square(ws: Path, pose: PoseFile, colour: tuple[float, float, float])
     """(the render with the square painted (H, W, 3), the square (H, W) bool)."""
     image = torch.round(render(ws, pose) * 255) / 255
     avatar = Avatar.load(open_workspace(ws).require_avatar())
-    joints = forward_kinematics(pose.body_pose[None], avatar.rest_joints, pose.transl[None])[0, :, :3, 3]
+    transform = forward_kinematics(pose.body_pose[None], avatar.rest_joints, pose.transl[None])[0, SPINE]
+    spine = transform[:3, :3] @ avatar.rest_joints[SPINE] + transform[:3, 3]  # the joint, posed
     camera = pose.camera
-    point = camera.K @ (camera.world_to_camera[:3, :3] @ joints[SPINE] + camera.world_to_camera[:3, 3])
+    point = camera.K @ (camera.world_to_camera[:3, :3] @ spine + camera.world_to_camera[:3, 3])
     column, row = (point[:2] / point[2]).round().long().tolist()
     half = max(2, camera.width // 32)
     square = torch.zeros(image.shape[:2], dtype=torch.bool)
@@ -75,7 +76,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("workspace", type=Path)
     parser.add_argument("sample", type=Path)
-    parser.add_argument("--frame", type=int, default=4, help="held-out frame of SAMPLE/test")
+    parser.add_argument("--frame", type=int, default=19, help="held-out frame of SAMPLE/test")
     parser.add_argument("--colour", default="1,0,1", help="the square's colour, R,G,B in [0, 1]")
     parser.add_argument("--iterations", type=int, default=500)
     parser.add_argument("--strengths", default=",".join(STRENGTHS), help="which strengths to run, comma-separated")

@@ -257,7 +257,8 @@ def _paint_torso_square(workspace: Path, tmp_path: Path) -> tuple[Path, Path, to
     avatar = Avatar.load(workspace / "avatar" / "000.ply")
     with torch.no_grad():
         image = render_avatar(avatar, pose.body_pose, pose.transl, pose.camera, torch.ones(3)).image.clamp(0, 1)
-    spine = forward_kinematics(pose.body_pose[None], avatar.rest_joints, pose.transl[None])[0, 6, :3, 3]
+    transform = forward_kinematics(pose.body_pose[None], avatar.rest_joints, pose.transl[None])[0, 6]
+    spine = transform[:3, :3] @ avatar.rest_joints[6] + transform[:3, 3]  # the joint, posed
     point = pose.camera.K @ (pose.camera.world_to_camera[:3, :3] @ spine + pose.camera.world_to_camera[:3, 3])
     column, row = (point[:2] / point[2]).round().long().tolist()
     square = torch.zeros(image.shape[:2], dtype=torch.bool)
