@@ -58,7 +58,7 @@ def refine(workspace_root: Path, settings: RefineSettings | None = None, progres
         protect = settings.protect_seen and any(bool(edit.background().any()) for edit in new_edits)
         views = {edit.number: edit.training_view() for edit in edits}
         strong = [edit.strength == "strong" for edit in edits]
-        start_errors = {edit.number: edit.record().get("painted_over_error") for edit in edits}
+        start_errors = {edit.number: edit.painted_over_error for edit in edits}
         for number, error in start_errors.items():
             if error is None:  # registered before the error was recorded: measured from this refine's start
                 start_errors[number] = rendered_paint_error(avatar, views[number])

@@ -139,6 +139,15 @@ class RegisteredEdit:
         return record
 
     @property
+    def painted_over_error(self) -> float | None:
+        """The squared error of the image painted over inside M_k (None for edits registered before it was
+        recorded)."""
+        error = self.record().get("painted_over_error")
+        if error is not None and (not isinstance(error, (int, float)) or not 0.0 <= error < float("inf")):
+            raise InputFileError(self.folder / "edit.json", f"'painted_over_error' must be a number >= 0, got {error!r}")
+        return error
+
+    @property
     def strength(self) -> str:
         """How refine weighs the edit against the video ("default" for edits registered without one)."""
         strength = self.record().get("strength", "default")

@@ -309,6 +309,11 @@ def test_apply_edit_changes_a_registered_edits_strength(workspace: Path, tmp_pat
     assert json.loads(record.read_text())["strength"] == "strong"
     assert "--strength" in one_line_error(invoke("apply-edit", workspace, "--edit", "1", "--strength", "huge"))
     assert "no edit 2" in one_line_error(invoke("apply-edit", workspace, "--edit", "2", "--strength", "strong"))
+    for field, value in (("strength", "huge"), ("painted_over_error", "a lot")):
+        damaged = json.loads(record.read_text()) | {field: value}
+        record.write_text(json.dumps(damaged))
+        assert field in one_line_error(invoke("refine", workspace, "--iterations", "2")) and open_workspace(workspace).iteration == 0
+        record.write_text(json.dumps(damaged | {field: "strong" if field == "strength" else 0.5}))
 
 
 def test_refine_gives_the_barely_seen_gaussians_the_first_fits_rates(workspace: Path, tmp_path: Path, monkeypatch):
