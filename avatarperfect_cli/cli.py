@@ -244,13 +244,17 @@ def evaluate(
         "poses_optimized.npz, else poses.npz).", show_default=False,
     ),  # fmt: skip
     device: str = typer.Option("auto", help=DEVICE_HELP),
+    refine_poses: bool = typer.Option(
+        False, "--refine-poses", help="Also score with each held-out pose fitted to its frame (mask, then image) with the "
+        "avatar fixed, so estimated test poses do not count against the avatar; both scores are reported.",
+    ),  # fmt: skip
 ) -> None:
     """IoU, PSNR and SSIM on held-out poses (moved by the workspace's translation offset, like its training poses)."""
     from avatarperfect_cli.devices import resolve_device
     from avatarperfect_cli.stages.evaluate import evaluate as run
 
     torch_device = resolve_device(device)
-    run(workspace, test, iteration, _frame_range(frames), poses=poses, device=torch_device)
+    run(workspace, test, iteration, _frame_range(frames), poses=poses, device=torch_device, refine_poses=refine_poses)
 
 
 @app.command("render")

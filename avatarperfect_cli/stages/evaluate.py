@@ -1,7 +1,9 @@
 """The `evaluate` stage: IoU, PSNR and SSIM of an avatar on held-out frames (paper §7.3).
 
 IoU compares the rendered silhouette (accumulated opacity > 0.5) with the ground-truth mask; PSNR
-and SSIM compare the render on white with the ground truth on white.
+and SSIM compare the render on white with the ground truth on white. With `refine_poses` each held-out
+frame's pose is first fitted to that frame with the avatar fixed (the field's test-time pose refinement),
+and both scores are reported: the given poses' and the refined poses'.
 """
 
 from __future__ import annotations
@@ -12,12 +14,12 @@ from pathlib import Path
 
 import torch
 from rich.console import Console
-from rich.progress import track
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, track
 from rich.table import Table
 
 from avatarperfect_cli.avatar.model import Avatar
 from avatarperfect_cli.avatar.rendering import render_avatar
-from avatarperfect_cli.datasets import FrameRange, load_people_snapshot
+from avatarperfect_cli.datasets import FrameRange, VideoDataset, load_people_snapshot
 from avatarperfect_cli.devices import CPU
 from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
 from avatarperfect_cli.io import atomic_write_text, write_image
@@ -26,6 +28,8 @@ from avatarperfect_cli.io.outputs import check_writable_folder
 from avatarperfect_cli.io.workspace import MANIFEST, Workspace, locked_workspace
 from avatarperfect_cli.stages.workspace_data import training_camera, transl_offset
 from avatarperfect_cli.training import metrics
+from avatarperfect_cli.training.pose_fit import PoseFitConfig, fit_poses_to_images, fit_poses_to_masks
+from avatarperfect_cli.training.silhouette import SkinnedPoints, check_masks
 
 WHITE = torch.ones(3)
 GRID_ROWS = 6
@@ -46,6 +50,7 @@ def evaluate(
     progress: bool = True,
     poses: str = "auto",
     device: torch.device = CPU,
+    refine_poses: bool = False,
 ) -> dict:
     """Evaluate avatar `iteration` (default: the latest) on `test_dataset`, at the training resolution.
 
@@ -56,16 +61,17 @@ def evaluate(
     (the test poses come from the same fitting as the training ones).
     The test video is downscaled by the training video's factor and must then have the training size;
     another resolution is refused (one line) rather than scored at a different size.
-    Writes ws/eval/NNN/<test folder name>/metrics.json (per frame and mean) and comparison.png;
-    returns the metrics.
+    Writes ws/eval/NNN/<test folder name>/metrics.json (per frame and mean) and comparison.png; with
+    `refine_poses` also the refined poses' scores (metrics.json's "refined_poses") and comparison_refined.png.
+    Returns the metrics.
     """
     with locked_workspace(workspace_root) as workspace:
-        return _evaluate(workspace, test_dataset, iteration, frames, progress, poses, device)
+        return _evaluate(workspace, test_dataset, iteration, frames, progress, poses, device, refine_poses)
 
 
 def _evaluate(
     workspace: Workspace, test_dataset: Path, iteration: int | None, frames: FrameRange | None, progress: bool, poses: str,
-    device: torch.device,
+    device: torch.device, refine_poses: bool,
 ) -> dict:  # fmt: skip
     avatar = Avatar.load(workspace.require_avatar(iteration)).to(device)
     out_dir = workspace.eval_dir(iteration) / Path(test_dataset).resolve().name
@@ -83,12 +89,63 @@ def _evaluate(
             f"its frames are {test.camera.width}x{test.camera.height} after the training downscale of {downscale}, but "
             f"the avatar was trained at {trained.width}x{trained.height}; evaluate on a video of the training resolution",
         )
-    per_frame = []
-    grid_rows = []
+    if not len(test):
+        raise AvatarPerfectError(f"{test_dataset}: no frames to evaluate")
+    if refine_poses:
+        check_masks(test)
+    per_frame, grid = _score(avatar, test, test.body_pose, test.transl, progress)
+    result = {
+        "iteration": workspace.iteration if iteration is None else iteration,
+        "test_dataset": str(Path(test_dataset).resolve()),
+        "poses": test.pose_file,
+        "frames": len(per_frame),
+        "mean": _mean(per_frame),
+        "per_frame": per_frame,
+    }
+    pictures = {"comparison.png": grid}
+    if refine_poses:
+        body_pose, transl = refined_test_poses(avatar, test, progress)
+        refined_frames, pictures["comparison_refined.png"] = _score(avatar, test, body_pose, transl, progress)
+        result["refined_poses"] = {"mean": _mean(refined_frames), "per_frame": refined_frames}
+    with atomic_folder(out_dir) as staging:
+        atomic_write_text(staging / "metrics.json", json.dumps(result, indent=2) + "\n")
+        for name, picture in pictures.items():
+            write_image(staging / name, picture)
+    if progress:
+        table = Table(title=f"avatar {result['iteration']:03d} on {len(per_frame)} frames of {out_dir.name}")
+        for name in ("poses", "IoU", "PSNR (dB)", "SSIM"):
+            table.add_column(name, justify="right")
+        rows = [("given", result["mean"])] + ([("refined", result["refined_poses"]["mean"])] if refine_poses else [])
+        for label, mean in rows:
+            table.add_row(label, f"{mean['iou']:.4f}", f"{mean['psnr']:.2f}", f"{mean['ssim']:.4f}")
+        Console(stderr=True).print(table)
+        Console(stderr=True).print(f"wrote {out_dir / 'metrics.json'} and {' and '.join(pictures)}")
+    return result
+
+
+def refined_test_poses(avatar: Avatar, test: VideoDataset, progress: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """The test frames' poses (T, 24, 3) and translations (T, 3) fitted to their masks, then to their images,
+    with the avatar fixed (training/pose_fit.py)."""
+    config = PoseFitConfig()
+    with Progress(TextColumn("[bold]fitting the test poses"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=Console(stderr=True), transient=True, disable=not progress) as bar:  # fmt: skip
+        task = bar.add_task("masks", total=config.steps + len(test))
+        to_masks = fit_poses_to_masks(test, SkinnedPoints.of_avatar(avatar, config.points), config, lambda: bar.advance(task))
+        fitted = VideoDataset(**{**vars(test), "body_pose": to_masks.body_pose, "transl": to_masks.transl})
+        to_images = fit_poses_to_images(avatar, fitted, on_frame=lambda: bar.advance(task))
+    return to_images.body_pose, to_images.transl
+
+
+def _score(
+    avatar: Avatar, test: VideoDataset, body_pose: torch.Tensor, transl: torch.Tensor, progress: bool
+) -> tuple[list[dict], torch.Tensor]:
+    """Per-frame IoU, PSNR and SSIM of the avatar at the given poses (T, 24, 3) and translations (T, 3), and
+    the comparison grid of every few frames."""
+    per_frame, grid_rows = [], []
     grid_every = max(1, len(test) // GRID_ROWS)
     with torch.no_grad():
         for t in track(range(len(test)), description="evaluating", console=Console(stderr=True), disable=not progress):
-            out = render_avatar(avatar, test.body_pose[t], test.transl[t], test.camera, WHITE)
+            out = render_avatar(avatar, body_pose[t], transl[t], test.camera, WHITE)
             render, alpha = out.image.clamp(0, 1).cpu(), out.alpha.cpu()
             per_frame.append(
                 {
@@ -100,28 +157,11 @@ def _evaluate(
             )
             if t % grid_every == 0 and len(grid_rows) < GRID_ROWS:
                 grid_rows.append((test.images[t], render))
-    if not per_frame:
-        raise AvatarPerfectError(f"{test_dataset}: no frames to evaluate")
-    mean = {key: statistics.fmean(frame[key] for frame in per_frame) for key in ("iou", "psnr", "ssim")}
-    result = {
-        "iteration": workspace.iteration if iteration is None else iteration,
-        "test_dataset": str(Path(test_dataset).resolve()),
-        "poses": test.pose_file,
-        "frames": len(per_frame),
-        "mean": mean,
-        "per_frame": per_frame,
-    }
-    with atomic_folder(out_dir) as staging:
-        atomic_write_text(staging / "metrics.json", json.dumps(result, indent=2) + "\n")
-        write_image(staging / "comparison.png", comparison_grid(grid_rows))
-    if progress:
-        table = Table(title=f"avatar {result['iteration']:03d} on {len(per_frame)} frames of {out_dir.name}")
-        for name in ("IoU", "PSNR (dB)", "SSIM"):
-            table.add_column(name, justify="right")
-        table.add_row(f"{mean['iou']:.4f}", f"{mean['psnr']:.2f}", f"{mean['ssim']:.4f}")
-        Console(stderr=True).print(table)
-        Console(stderr=True).print(f"wrote {out_dir / 'metrics.json'} and comparison.png")
-    return result
+    return per_frame, comparison_grid(grid_rows)
+
+
+def _mean(per_frame: list[dict]) -> dict[str, float]:
+    return {key: statistics.fmean(frame[key] for frame in per_frame) for key in ("iou", "psnr", "ssim")}
 
 
 def _training_downscale(workspace: Workspace) -> int:

@@ -24,7 +24,7 @@ from avatarperfect_cli.io.workspace import check_new_workspace, new_workspace, w
 from avatarperfect_cli.training.body_fit import BodyFitConfig, fit_body, fit_picture
 from avatarperfect_cli.training.pose_fit import PoseFitConfig, fit_poses_to_masks
 from avatarperfect_cli.training.pose_refinement import PoseRefiner
-from avatarperfect_cli.training.silhouette import check_masks
+from avatarperfect_cli.training.silhouette import SkinnedPoints, check_masks
 from avatarperfect_cli.training.template_offset import OffsetSearch, fit_transl_offset
 from avatarperfect_cli.training.trainer import TrainConfig, train, video_views
 
@@ -219,7 +219,7 @@ def _fit_poses(video: VideoDataset, template: BodyTemplate, progress: bool, cons
     with Progress(TextColumn("[bold]fitting the poses"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   console=Console(stderr=True), transient=True, disable=not progress) as bar:  # fmt: skip
         task = bar.add_task("poses", total=config.steps)
-        result = fit_poses_to_masks(video, template, config, on_step=lambda: bar.advance(task))
+        result = fit_poses_to_masks(video, SkinnedPoints.of_template(template, config.points), config, on_step=lambda: bar.advance(task))
     video.body_pose, video.transl = result.body_pose, result.transl
     console.print(
         f"poses fitted to the masks in {time.perf_counter() - start:.0f} s: silhouette distance "

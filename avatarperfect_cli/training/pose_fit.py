@@ -1,35 +1,42 @@
-"""The video's poses fitted to its masks, every frame at once, with the body fixed: what a pose estimator got
-wrong by a few degrees per joint, the silhouettes and the motion's smoothness put right before any Gaussian
-is trained.
+"""A video's poses fitted to its frames with the body fixed: what a pose estimator got wrong by a few degrees
+per joint, put right.
 
-Each frame gets an axis-angle offset (24, 3), the root's included, and a translation offset (3,); Adam
-minimises, over all frames together,
-    silhouette   the silhouette distances of the posed template (`training/silhouette.py`), pixels;
-    smoothness   the squared acceleration of the posed template points along the video (frame numbers as
-                 time), so a limb does not jump between consecutive frames: a pose estimator's errors are
-                 nearly independent from frame to frame, a body's motion is not;
+`fit_poses_to_masks` fits every frame at once, before any Gaussian is trained (train-initial --refine-poses)
+or with a trained avatar's Gaussians as the body (evaluate --refine-poses). Each frame gets an axis-angle
+offset (24, 3), the root's included, and a translation offset (3,); Adam minimises, over all frames together,
+    silhouette   the silhouette distances of the posed body (`training/silhouette.py`), pixels;
+    smoothness   the squared acceleration of the posed points along the video (frame numbers as time), so a
+                 limb does not jump between consecutive frames: a pose estimator's errors are nearly
+                 independent from frame to frame, a body's motion is not;
     prior        the squared offsets from the given poses, weak: the given pose decides only what the
                  silhouettes and the motion leave open (a twist about a limb's axis, a limb in front of the body).
+`fit_poses_to_images` then aligns a trained avatar with each frame's pixels (evaluate --refine-poses): the
+render against the image and its alpha against the mask, frame by frame.
 """
 
 from __future__ import annotations
 
+import statistics
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 
-from avatarperfect_cli.body import BodyTemplate, forward_kinematics, skin_points
+from avatarperfect_cli.avatar.model import Avatar
+from avatarperfect_cli.avatar.rendering import render_avatar
 from avatarperfect_cli.datasets import VideoDataset
-from avatarperfect_cli.training.silhouette import silhouette_loss, silhouettes, surface_points
+from avatarperfect_cli.datasets.people_snapshot import downscaled_camera
+from avatarperfect_cli.render import Camera
+from avatarperfect_cli.training.silhouette import SkinnedPoints, silhouette_loss, silhouettes
 
 
 @dataclass
 class PoseFitConfig:
-    """Settings of the pose fit.
+    """Settings of the pose fit to the masks.
 
     resolution:     longest side of the compared masks, pixels
-    points:         template vertices posed and projected (drawn by surface area, fixed)
+    points:         body points posed and projected (`SkinnedPoints`)
     contour_pixels: mask-contour pixels per frame in the coverage term (drawn, fixed)
     steps:          Adam steps over all frames
     pose_rate:      Adam step of the axis-angle offsets, radians; transl_rate: of the translations, metres
@@ -54,7 +61,7 @@ class PoseFitConfig:
 @dataclass
 class PoseFit:
     """body_pose: (T, 24, 3) axis-angle, radians; transl: (T, 3) metres, world frame; loss and start_loss: the
-    mean silhouette distance over the frames after and before the fit, pixels."""
+    fit's data term after and before (mean silhouette distance, pixels, or mean image error)."""
 
     body_pose: torch.Tensor
     transl: torch.Tensor
@@ -70,27 +77,19 @@ def acceleration(posed: torch.Tensor, times: torch.Tensor) -> torch.Tensor:
 
 
 def fit_poses_to_masks(
-    video: VideoDataset,
-    template: BodyTemplate,
-    config: PoseFitConfig | None = None,
-    on_step: Callable[[], None] | None = None,
+    video: VideoDataset, body: SkinnedPoints, config: PoseFitConfig | None = None, on_step: Callable[[], None] | None = None
 ) -> PoseFit:
     """Every frame's pose and translation fitted to its mask, starting from the video's own (which already
-    carry any translation offset). template: the body (fitted or exact), kept fixed; on_step: called after
-    each step (progress)."""
+    carry any translation offset). body: the body's points (`SkinnedPoints.of_template` or `.of_avatar`),
+    kept fixed; on_step: called after each step (progress)."""
     config = config or PoseFitConfig()
-    frames = torch.arange(len(video))
-    data = silhouettes(video, frames, config.resolution, config.contour_pixels)
-    chosen = surface_points(template.vertices.float(), template.faces, config.points)
-    points, weights = template.vertices[chosen].float(), template.weights[chosen].float()
-    rest_joints = template.rest_joints.float()
+    data = silhouettes(video, torch.arange(len(video)), config.resolution, config.contour_pixels)
     times = video.frame_ids.double()
     pose_offsets = torch.zeros_like(data.body_pose, requires_grad=True)
     transl_offsets = torch.zeros_like(data.transl, requires_grad=True)
 
     def losses() -> tuple[torch.Tensor, torch.Tensor]:
-        transforms = forward_kinematics(data.body_pose + pose_offsets, rest_joints, data.transl + transl_offsets)
-        posed = skin_points(points, weights, transforms)  # (T, P, 3)
+        posed = body.posed(data.body_pose + pose_offsets, data.transl + transl_offsets)  # (T, P, 3)
         fit = silhouette_loss(posed, data, config.huber).mean()
         smooth = acceleration(posed * 100.0, times).square().sum(dim=-1).mean() if len(video) > 2 else fit * 0
         prior = (pose_offsets / 0.1).square().sum(dim=-1).mean() * config.pose_prior
@@ -113,3 +112,82 @@ def fit_poses_to_masks(
     body_pose = (video.body_pose.float() + pose_offsets.detach()).to(video.body_pose.dtype)
     transl = (video.transl.float() + transl_offsets.detach()).to(video.transl.dtype)
     return PoseFit(body_pose, transl, loss, start_loss)
+
+
+@dataclass
+class ImagePoseConfig:
+    """Settings of the pose fit to the images.
+
+    resolution: longest side of the compared images, pixels
+    steps:      Adam steps per frame
+    pose_rate:  Adam step of the axis-angle offsets, radians; transl_rate: of the translation, metres
+    mask_weight: weight of the alpha-against-mask error beside the colour error (both mean absolute)
+    prior:      loss of the offsets, mean of (joint offset / 0.1 rad)² and (translation offset / 5 cm)²
+    """
+
+    resolution: int = 256
+    steps: int = 40
+    pose_rate: float = 0.005
+    transl_rate: float = 0.005
+    mask_weight: float = 1.0
+    prior: float = 0.01
+
+
+def fit_poses_to_images(
+    avatar: Avatar, video: VideoDataset, config: ImagePoseConfig | None = None, on_frame: Callable[[], None] | None = None
+) -> PoseFit:
+    """Each frame's pose and translation moved so the avatar's render (on white) matches the frame's image
+    (its person composited on white) and its alpha the mask, one frame at a time, from the video's poses.
+    The avatar stays fixed; on_frame: called after each frame (progress)."""
+    config = config or ImagePoseConfig()
+    factor = max(1, round(max(video.camera.width, video.camera.height) / config.resolution))
+    camera = downscaled_camera(video.camera, factor)
+    white = torch.ones(3)
+    poses, transls, losses, start_losses = [], [], [], []
+    trainable = [parameter for parameter in avatar.params.values() if parameter.requires_grad]
+    for parameter in trainable:  # the avatar stays as it is: no gradients for it
+        parameter.requires_grad_(False)
+    try:
+        for t in range(len(video)):
+            fit = _fit_frame(avatar, video, t, camera, white, config)
+            poses.append(fit.body_pose)
+            transls.append(fit.transl)
+            losses.append(fit.loss)
+            start_losses.append(fit.start_loss)
+            if on_frame is not None:
+                on_frame()
+    finally:
+        for parameter in trainable:
+            parameter.requires_grad_(True)
+    return PoseFit(torch.stack(poses), torch.stack(transls), statistics.fmean(losses), statistics.fmean(start_losses))
+
+
+def _fit_frame(avatar: Avatar, video: VideoDataset, t: int, camera: Camera, white: torch.Tensor, config: ImagePoseConfig) -> PoseFit:
+    """Frame t's pose (24, 3) and translation (3,) fitted to its image at `camera`'s size."""
+    mask = F.interpolate(video.masks[t].float()[None, None], size=(camera.height, camera.width), mode="area")[0, 0]
+    image = F.interpolate(video.images[t].permute(2, 0, 1)[None], size=(camera.height, camera.width), mode="area")[0]
+    target = (image.permute(1, 2, 0) * mask[..., None] + (1.0 - mask[..., None])).to(avatar.device)
+    mask = mask.to(avatar.device)
+    pose_offset = torch.zeros(24, 3, requires_grad=True)
+    transl_offset = torch.zeros(3, requires_grad=True)
+    optimizer = torch.optim.Adam(
+        [{"params": [pose_offset], "lr": config.pose_rate}, {"params": [transl_offset], "lr": config.transl_rate}]
+    )
+
+    def error() -> torch.Tensor:
+        out = render_avatar(avatar, video.body_pose[t] + pose_offset, video.transl[t] + transl_offset, camera, white)
+        colour = (out.image - target).abs().mean()
+        prior = (pose_offset / 0.1).square().mean() + (transl_offset / 0.05).square().mean()
+        return colour + config.mask_weight * (out.alpha - mask).abs().mean() + config.prior * prior
+
+    start_loss = 0.0
+    for step in range(config.steps):
+        optimizer.zero_grad(set_to_none=True)
+        loss = error()
+        start_loss = float(loss.detach()) if step == 0 else start_loss
+        loss.backward()
+        optimizer.step()
+    with torch.no_grad():
+        loss = float(error())
+    return PoseFit(video.body_pose[t] + pose_offset.detach(), video.transl[t] + transl_offset.detach(), loss, start_loss)
+

@@ -18,6 +18,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from avatarperfect_cli.avatar.model import Avatar
+from avatarperfect_cli.body import BodyTemplate, forward_kinematics, skin_points
 from avatarperfect_cli.datasets import VideoDataset
 from avatarperfect_cli.datasets.people_snapshot import downscaled_camera
 from avatarperfect_cli.errors import AvatarPerfectError
@@ -34,6 +36,38 @@ class Silhouettes:
     transl: torch.Tensor
     outside: torch.Tensor
     contours: torch.Tensor
+
+
+@dataclass
+class SkinnedPoints:
+    """Points that stand for a body's surface: points (P, 3) canonical, metres; weights (P, 24) skinning
+    weights; rest_joints (24, 3) metres."""
+
+    points: torch.Tensor
+    weights: torch.Tensor
+    rest_joints: torch.Tensor
+
+    @classmethod
+    def of_template(cls, template: BodyTemplate, count: int) -> SkinnedPoints:
+        """`count` template vertices drawn by surface area (`surface_points`)."""
+        chosen = surface_points(template.vertices.float(), template.faces, count)
+        return cls(template.vertices[chosen].float(), template.weights[chosen].float(), template.rest_joints.float())
+
+    @classmethod
+    def of_avatar(cls, avatar: Avatar, count: int) -> SkinnedPoints:
+        """The centres of `count` of the avatar's opaque Gaussians (opacity above 0.5; a fixed draw)."""
+        opaque = torch.nonzero(avatar.opacities.detach().cpu() > 0.5).flatten()
+        generator = torch.Generator().manual_seed(0)
+        chosen = opaque[torch.randperm(len(opaque), generator=generator)[:count]]
+        return cls(
+            avatar.params["means"].detach().cpu()[chosen].float(),
+            avatar.skin_weights.detach().cpu()[chosen].float(),
+            avatar.rest_joints.cpu().float(),
+        )
+
+    def posed(self, body_pose: torch.Tensor, transl: torch.Tensor) -> torch.Tensor:
+        """(T, P, 3) world-frame points for poses (T, 24, 3) and translations (T, 3)."""
+        return skin_points(self.points, self.weights, forward_kinematics(body_pose, self.rest_joints, transl))
 
 
 def check_masks(video: VideoDataset) -> None:

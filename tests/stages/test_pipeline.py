@@ -71,6 +71,18 @@ def test_evaluate_writes_metrics_and_grid(workspace: Path):
     assert grid.shape[1] == 3 * 64
 
 
+def test_evaluate_with_refined_poses_reports_both(workspace: Path):
+    result = invoke("evaluate", workspace, "--test", SAMPLE / "test", "--frames", "0:19:5", "--refine-poses")
+    assert result.exit_code == 0, result.output
+    assert "given" in result.stderr and "refined" in result.stderr
+    out = workspace / "eval" / "000" / "test"
+    metrics = json.loads((out / "metrics.json").read_text())
+    refined = metrics["refined_poses"]
+    assert len(refined["per_frame"]) == 4 and [f["frame"] for f in refined["per_frame"]] == [f["frame"] for f in metrics["per_frame"]]
+    assert 0.5 < refined["mean"]["iou"] <= 1 and 10 < refined["mean"]["psnr"] < 60
+    assert read_image(out / "comparison_refined.png").shape == read_image(out / "comparison.png").shape
+
+
 def test_render_motion_turntable_and_pose(workspace: Path, tmp_path: Path):
     motion = Path(__file__).resolve().parents[2] / "examples" / "motions" / "walk.npz"
     assert invoke("render", workspace, "--motion", motion, "-o", tmp_path / "walk.mp4").exit_code == 0
