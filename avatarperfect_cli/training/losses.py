@@ -16,7 +16,9 @@ from __future__ import annotations
 
 from typing import Literal
 
+import cv2
 import numba
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -132,6 +134,35 @@ def image_loss(
         weights = mask.to(pred.dtype)[..., None]
         pred, target = pred * weights, target * weights
     return l1_loss(pred, target) + ssim_weight * (1.0 - ssim(pred, target))
+
+
+DATASET_BACKGROUND = 1.0  # the colour the dataset loader composites the frames onto (white)
+
+
+def boundary_band(mask: torch.Tensor, width: int) -> torch.Tensor:
+    """(H, W) bool: the pixels within `width` of the (H, W) bool mask's edge, inside it or outside (square
+    neighbourhoods; the image border is no edge), on the mask's device (computed by OpenCV on the CPU)."""
+    kernel = np.ones((2 * width + 1, 2 * width + 1), np.uint8)
+    pixels = mask.cpu().numpy().astype(np.uint8)
+    return torch.from_numpy(cv2.dilate(pixels, kernel) != cv2.erode(pixels, kernel)).to(mask.device)
+
+
+def mask_band_supervision(
+    image: torch.Tensor, alpha: torch.Tensor, background: torch.Tensor, target: torch.Tensor, frame: torch.Tensor,
+    band: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The render and target of a video frame whose mask may be a few pixels off at its edge: the silhouette
+    is evidence there, not truth.
+
+    image: (H, W, 3) render over `background` (3,); alpha: (H, W) its accumulated opacity; target: (H, W, 3)
+    the frame on the mask and `background` elsewhere; frame: (H, W, 3) the frame, composited over
+    DATASET_BACKGROUND; band: (H, W) bool, the mask's `boundary_band`. In the band the render composited
+    over DATASET_BACKGROUND is compared with the frame, so the frame's colours, not the mask, decide whether
+    a pixel is subject or background. Returns the render and the target, (H, W, 3) each.
+    """
+    on_dataset_background = image + (1.0 - alpha[..., None]) * (DATASET_BACKGROUND - background)
+    band = band[..., None]
+    return torch.where(band, on_dataset_background, image), torch.where(band, frame, target)
 
 
 def subject_bbox(mask: torch.Tensor, margin: int = 20) -> tuple[slice, slice]:

@@ -56,6 +56,12 @@ class DensifyConfig:
     max_gaussians:       growth stops at this count (the highest gradients grow first)
     reset_opacity_every: every this many steps (0: never) opacities are clamped to
                          2 * prune_opacity, as in 3DGS; off by default (DESIGN.md lists no reset)
+    max_scale:           metres (0: no bound); after every step, at every step of the run (not only while
+                         densifying), no standard deviation exceeds this
+    max_anisotropy:      (0: no bound) likewise, no Gaussian's largest standard deviation exceeds this many
+                         times its second largest: needles are bounded, flat discs (the surface) are not
+    Both bounds keep the streaks away (Gaussians stretched along a limb that show as spikes in new poses;
+    docs/avatar-quality.md).
     """
 
     refine_start: int = 101
@@ -67,6 +73,8 @@ class DensifyConfig:
     prune_opacity: float = 0.1
     max_gaussians: int = 60_000
     reset_opacity_every: int = 0
+    max_scale: float = 0.025
+    max_anisotropy: float = 10.0
 
 
 @dataclass
@@ -140,6 +148,17 @@ def split_children(
     return children
 
 
+@torch.no_grad()
+def bound_scales(log_scales: torch.Tensor, max_scale: float, max_anisotropy: float) -> None:
+    """Clamp (N, 3) log standard deviations in place: each at most log(max_scale), and the largest at most
+    log(max_anisotropy) above the second largest (a bound of 0 is no bound)."""
+    if max_anisotropy > 0:
+        second = log_scales.median(dim=-1, keepdim=True).values  # of three: the second largest
+        log_scales.copy_(torch.minimum(log_scales, second + math.log(max_anisotropy)))
+    if max_scale > 0:
+        log_scales.clamp_(max=math.log(max_scale))
+
+
 class DensifyStrategy:
     """Adaptive density control: clone small and split large Gaussians with large screen-space
     gradients, prune transparent ones; see the module docstring for the calling protocol."""
@@ -175,8 +194,10 @@ class DensifyStrategy:
         step: int,
         render_output: RenderOutput,
     ) -> RefineStats | None:
-        """Accumulate the gradient statistic; at refine steps densify and prune (returns what it did)."""
+        """Bound the scales; accumulate the gradient statistic; at refine steps densify and prune (returns
+        what it did)."""
         c = self.config
+        bound_scales(params["log_scales"], c.max_scale, c.max_anisotropy)
         if step >= c.refine_stop:
             return None
         self._accumulate(state, render_output)

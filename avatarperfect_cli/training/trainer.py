@@ -22,7 +22,7 @@ from avatarperfect_cli.avatar.model import Avatar
 from avatarperfect_cli.avatar.rendering import render_avatar
 from avatarperfect_cli.datasets import VideoDataset
 from avatarperfect_cli.render import Camera
-from avatarperfect_cli.training.losses import image_loss, subject_bbox
+from avatarperfect_cli.training.losses import boundary_band, image_loss, mask_band_supervision, subject_bbox
 from avatarperfect_cli.training.optim import LearningRates, create_optimizers, set_learning_rates
 from avatarperfect_cli.training.pose_refinement import PoseRefiner
 from avatarperfect_cli.training.progress import TrainingProgress
@@ -80,6 +80,10 @@ class TrainConfig:
     # its own gradients, so a Gaussian only the edits supervise learns them as fast at any factor, while one
     # the video supervises too follows the edits that much less.
     edit_loss_weight: float = 1.0
+    # pixels either side of a video frame's mask edge where the frame's colours, not the mask, decide what
+    # is subject (`mask_band_supervision`; 0: the mask decides everywhere). Masks from segmenters and chroma
+    # keys err by about 3 px there (docs/avatar-quality.md).
+    mask_band: int = 3
     learning_rates: LearningRates = field(default_factory=LearningRates)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
 
@@ -141,6 +145,7 @@ def train(
     state = strategy.initialize_state()
     regions = [_supervised_region(view, config.bbox_margin) for view in video]
     edit_regions = [_supervised_region(view, config.bbox_margin) for view in edits]
+    bands = [boundary_band(view.foreground, config.mask_band) for view in video] if config.mask_band else []
     video_transforms = None if pose_refiner is not None else _fixed_pose_transforms(avatar, video)
     edit_transforms = _fixed_pose_transforms(avatar, edits)
     edit_weights = [view.draw_weight for view in edits]
@@ -169,7 +174,11 @@ def train(
             target = torch.where(view.foreground[rows, cols, None], view.image[rows, cols], background)
             out = render_avatar(avatar, body_pose, transl, view.camera, background, region=(rows, cols), transforms=transforms)
             mask = None if view.loss_mask is None else view.loss_mask[rows, cols]
-            loss = image_loss(out.image[rows, cols], target, mask, config.ssim_weight)
+            image = out.image[rows, cols]
+            if mask is None and bands:
+                frame, band = view.image[rows, cols], bands[index][rows, cols]
+                image, target = mask_band_supervision(image, out.alpha[rows, cols], background, target, frame, band)
+            loss = image_loss(image, target, mask, config.ssim_weight)
             if mask is not None and config.background_alpha_weight:
                 loss = loss + config.background_alpha_weight * background_alpha(out.alpha[rows, cols], mask, view.foreground[rows, cols])
 

@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from avatarperfect_cli.training.losses import _ssim_conv, image_loss, l1_loss, ssim, subject_bbox
+from avatarperfect_cli.training.losses import _ssim_conv, boundary_band, image_loss, l1_loss, mask_band_supervision, ssim, subject_bbox
 
 
 def dense_ssim(x: torch.Tensor, y: torch.Tensor, border: int) -> torch.Tensor:
@@ -141,3 +141,45 @@ def test_torch_ssim_matches_the_numba_kernel_forward_and_backward(
     assert scale > 0
     torch.testing.assert_close(conv_pred, numba_pred, rtol=0, atol=tolerance * scale)
     torch.testing.assert_close(conv_target, numba_target, rtol=0, atol=tolerance * scale)
+
+
+def square_mask(size: int, low: int, high: int) -> torch.Tensor:
+    mask = torch.zeros(size, size, dtype=torch.bool)
+    mask[low:high, low:high] = True
+    return mask
+
+
+def test_boundary_band_marks_width_pixels_either_side_of_the_edge() -> None:
+    band = boundary_band(square_mask(20, 6, 14), width=2)
+    torch.testing.assert_close(band, square_mask(20, 4, 16) & ~square_mask(20, 8, 12))
+    edge = torch.zeros(20, 20, dtype=torch.bool)
+    edge[:, :5] = True  # the image border is no edge
+    expected = torch.zeros(20, 20, dtype=torch.bool)
+    expected[:, 3:7] = True
+    torch.testing.assert_close(boundary_band(edge, width=2), expected)
+
+
+def test_mask_band_supervision_lets_the_frame_decide_at_the_edge_of_a_dilated_mask() -> None:
+    # The subject is the square 8..16 in a frame on white; the render is exactly it (opaque inside, empty
+    # outside) over a random background. Against a mask dilated by 2 px the plain loss is large at the ring of
+    # white the mask calls subject; with the band it is zero: no Gaussian is asked to grow into the ring.
+    size, background = 24, torch.tensor([0.2, 0.5, 0.9])
+    subject = square_mask(size, 8, 16)
+    colour = torch.tensor([0.7, 0.1, 0.3])
+    alpha = subject.float()
+    render = torch.where(subject[..., None], colour, background)
+    frame = torch.where(subject[..., None], colour, torch.ones(3))  # composited on white
+    dilated = square_mask(size, 6, 18)
+    target = torch.where(dilated[..., None], frame, background)
+    assert image_loss(render, target) > 0.01
+    image, band_target = mask_band_supervision(render, alpha, background, target, frame, boundary_band(dilated, 2))
+    assert image_loss(image, band_target) < 1e-6
+    # with the exact mask the band changes nothing where the render is right
+    exact_target = torch.where(subject[..., None], frame, background)
+    image, band_target = mask_band_supervision(render, alpha, background, exact_target, frame, boundary_band(subject, 2))
+    assert image_loss(image, band_target) < 1e-6
+    # a render that leaves the subject's edge transparent, or spills past it, costs in the band
+    for wrong_alpha in (square_mask(size, 10, 14).float(), square_mask(size, 6, 18).float()):
+        wrong = torch.where(wrong_alpha[..., None] > 0, colour, background)
+        image, band_target = mask_band_supervision(wrong, wrong_alpha, background, exact_target, frame, boundary_band(subject, 2))
+        assert image_loss(image, band_target) > 0.01

@@ -6,7 +6,7 @@ import torch
 from avatarperfect_cli.body import axis_angle_to_matrix, matrix_to_quaternion, quaternion_to_matrix
 from avatarperfect_cli.render import RenderOutput
 from avatarperfect_cli.training.optim import LearningRates, create_optimizers
-from avatarperfect_cli.training.strategy import DensifyConfig, DensifyStrategy, RefineStats, split_children
+from avatarperfect_cli.training.strategy import DensifyConfig, DensifyStrategy, RefineStats, bound_scales, split_children
 
 WIDTH, HEIGHT = 200, 100
 
@@ -141,7 +141,7 @@ def test_split_children_sample_the_parent_in_its_local_frame() -> None:
         params["quats"][:] = matrix_to_quaternion(rotation)
         params["log_scales"][:] = torch.log(scales)
     optimizers = create_optimizers(params, LearningRates())
-    strategy = DensifyStrategy(DensifyConfig(refine_start=0, clone_max_scale=0.001), seed=1)
+    strategy = DensifyStrategy(DensifyConfig(refine_start=0, clone_max_scale=0.001, max_scale=0.0), seed=1)
     state = strategy.initialize_state()
     parents = params["means"].detach().clone()
     screen_grad = torch.full((n, 2), 1e-5)
@@ -227,7 +227,7 @@ def test_densify_an_avatar_rendered_by_the_rasterizer() -> None:
     camera = Camera(K, look_at(torch.tensor([0.0, 0, 2]), torch.zeros(3), torch.tensor([0.0, 1, 0])), 64, 64)
     target = torch.ones(64, 64, 3) * torch.tensor([0.8, 0.2, 0.2])
     optimizers = create_optimizers(avatar.params, LearningRates())
-    config = DensifyConfig(refine_start=1, refine_every=10, clone_max_scale=0.05)
+    config = DensifyConfig(refine_start=1, refine_every=10, clone_max_scale=0.05, max_scale=0.0)
     strategy = DensifyStrategy(config)
     state = strategy.initialize_state()
     for step in range(3):
@@ -246,3 +246,45 @@ def test_densify_an_avatar_rendered_by_the_rasterizer() -> None:
             optimizer.step()
             optimizer.zero_grad()
     assert len(avatar) == 10 and avatar.skin_weights.shape == (10, 24)
+
+
+def test_bound_scales_clamps_length_and_needles_but_not_discs() -> None:
+    scales = torch.tensor([
+        [0.010, 0.0005, 0.0005],  # a needle: 20 times longer than wide
+        [0.040, 0.0400, 0.0010],  # a large flat disc
+        [0.004, 0.0040, 0.0002],  # a small flat disc: unchanged
+        [0.002, 0.0100, 0.0050],  # anisotropy 2: unchanged
+    ])  # fmt: skip
+    log_scales = scales.log()
+
+    bound_scales(log_scales, max_scale=0.025, max_anisotropy=10.0)
+    expected = torch.tensor([[0.005, 0.0005, 0.0005], [0.025, 0.025, 0.001], [0.004, 0.004, 0.0002], [0.002, 0.01, 0.005]])
+    torch.testing.assert_close(log_scales.exp(), expected)
+    unbounded = scales.log()
+    bound_scales(unbounded, max_scale=0.0, max_anisotropy=0.0)
+    torch.testing.assert_close(unbounded.exp(), scales)
+
+
+def test_scales_stay_bounded_through_and_after_densification() -> None:
+    params = make_params(6)
+    optimizers = create_optimizers(params, LearningRates(skin_start=0))
+    config = DensifyConfig(refine_start=5, refine_every=10, refine_stop=40, grad_threshold=1e-4)
+    strategy = DensifyStrategy(config)
+    state = strategy.initialize_state()
+    for step in range(1000):  # a loss that stretches every Gaussian along its first axis, in the trainer's order
+        means2d = params["means"][:, :2] * 1.0
+        n = means2d.shape[0]
+        out = RenderOutput(torch.zeros(HEIGHT, WIDTH, 3), torch.zeros(HEIGHT, WIDTH), None, torch.zeros(n), means2d,
+                           torch.full((n,), 3, dtype=torch.int32), WIDTH, HEIGHT)  # fmt: skip
+        strategy.step_pre_backward(params, optimizers, state, step, out)
+        ((means2d * 1e-5).sum() - params["log_scales"][:, 0].sum()).backward()
+        for optimizer in optimizers.values():
+            optimizer.step()
+            optimizer.zero_grad()
+        strategy.step_post_backward(params, optimizers, state, step, out)
+    scales = params["log_scales"].detach().exp()
+    assert params["means"].shape[0] > 6  # densified
+    assert scales.max() <= config.max_scale * (1 + 1e-6)
+    sorted_scales = scales.sort(dim=-1).values
+    assert (sorted_scales[:, 2] <= config.max_anisotropy * sorted_scales[:, 1] * (1 + 1e-6)).all()
+    assert scales[:, 0].min() > 0.002 * 4  # they did grow, up to the bound

@@ -17,6 +17,9 @@ from avatarperfect_cli.training.strategy import DensifyConfig
 from avatarperfect_cli.training.trainer import TrainConfig, TrainingView, background_alpha, train
 
 SIZE = 48
+# The sphere's Gaussians (3 cm) start above the default scale bound, which would clamp them all at the first
+# step: the tests of what edits leave unchanged train without it.
+UNBOUNDED = DensifyConfig(max_scale=0.0)
 
 
 def sphere_template(rings: int = 16, segments: int = 24, radius: float = 0.3) -> BodyTemplate:
@@ -110,7 +113,7 @@ def test_edits_change_only_the_masked_region():
     mask[:, : SIZE // 2] = True
     red = torch.tensor([1.0, 0.0, 0.0]).expand(SIZE, SIZE, 3)
     edit = TrainingView(red, video[0].foreground, yaw(0.0), torch.zeros(3), camera(), loss_mask=mask)
-    config = TrainConfig(iterations=60, edit_probability=1.0)
+    config = TrainConfig(iterations=60, edit_probability=1.0, densify=UNBOUNDED)
     config.learning_rates.sh_dc = 0.05
     train(avatar, video, [edit], config=config, progress=False)
     with torch.no_grad():
@@ -155,7 +158,8 @@ def test_edit_steps_leave_the_frozen_parameters_unchanged():
     edit = left_half_edit(video, [1.0, 0.0, 0.0])
     initial = {name: value.detach().clone() for name, value in avatar.params.items()}
     frozen = ("means", "quats", "log_scales")
-    train(avatar, video, [edit], config=TrainConfig(iterations=10, edit_probability=1.0, edit_frozen=frozen), progress=False)
+    config = TrainConfig(iterations=10, edit_probability=1.0, edit_frozen=frozen, densify=UNBOUNDED)
+    train(avatar, video, [edit], config=config, progress=False)
     for name in frozen:
         assert torch.equal(avatar.params[name], initial[name]), name
     assert not torch.equal(avatar.params["sh_dc"], initial["sh_dc"])
@@ -203,7 +207,7 @@ def test_edit_loss_weight_leaves_what_only_the_edits_supervise_as_fast():
     for weight in (1.0, 0.25):
         avatar = coloured_avatar()
         video = video_of(avatar)
-        config = TrainConfig(iterations=15, edit_probability=1.0, edit_loss_weight=weight)
+        config = TrainConfig(iterations=15, edit_probability=1.0, edit_loss_weight=weight, densify=UNBOUNDED)
         train(avatar, video, [left_half_edit(video, [1.0, 0.0, 0.0])], config=config, progress=False)
         results.append(avatar)
     for name, value in results[0].params.items():
@@ -257,3 +261,23 @@ def test_rate_scales_set_each_gaussians_learning_rate():
     moved = (target.params["sh_dc"].detach() - rgb_to_sh(torch.full((3,), 0.5))).abs().amax(dim=(1, 2)) > 0
     assert not moved[frozen].any()
     assert moved[~frozen].float().mean() > 0.5
+
+
+def test_the_mask_band_keeps_a_dilated_masks_ring_empty():
+    """Masks 2 px too wide around a sphere on white: without the band the trainer paints the ring white
+    (the mask calls it subject); with it the frame's white there reads as background and the ring stays
+    nearly empty."""
+    truth = video_of(coloured_avatar())
+    kernel = torch.ones(1, 1, 5, 5)
+    dilated = [
+        replace(view, foreground=torch.nn.functional.conv2d(view.foreground[None, None].float(), kernel, padding=2)[0, 0] > 0)
+        for view in truth
+    ]
+    ring = dilated[0].foreground & ~truth[0].foreground
+    alphas = []
+    for band in (0, 3):
+        avatar = coloured_avatar()
+        train(avatar, dilated, config=TrainConfig(iterations=60, mask_band=band, densify=UNBOUNDED), progress=False)
+        with torch.no_grad():
+            alphas.append(float(render_avatar(avatar, yaw(0.0), torch.zeros(3), camera(), torch.ones(3)).alpha[ring].mean()))
+    assert alphas[1] < 0.5 * alphas[0], alphas
