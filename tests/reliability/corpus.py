@@ -800,12 +800,17 @@ CASES += _newer_stage_cases()
 
 
 def _body_fit_cases() -> list[Case]:
-    """A training video whose mask leaves no body to fit: the fit names the frame (the file itself is valid)."""
-    argv = ["train-initial", "ROOT/data", "ROOT/new-ws", "--iterations", "1", "--body-shape", "fit"]
+    """A training video whose mask leaves no body to fit: the body fit and the pose fit name the frame (the
+    file itself is valid)."""
+    fits = {"body-fit": ["--body-shape", "fit"], "pose-fit": ["--body-shape", "exact", "--refine-poses"]}
     mask = "data/masks/mask_0000.npy"
+
+    def argv(options: list[str]) -> Callable[[Path], list[str]]:
+        return lambda root: ["train-initial", f"{root}/data", f"{root}/new-ws", "--iterations", "1", *options]
+
     return [
-        Case(f"body-fit/{label}", _damaged(lambda root: write_dataset(root / "data"), mask, save_npy(value)),
-             lambda root: [a.replace("ROOT/", f"{root}/") for a in argv], names="frame 0")  # fmt: skip
+        Case(f"{fit}/{label}", _damaged(lambda root: write_dataset(root / "data"), mask, save_npy(value)), argv(options), names="frame 0")
+        for fit, options in fits.items()
         for label, value in (("mask empty", np.zeros((HEIGHT, WIDTH), np.uint8)), ("mask whole frame", np.ones((HEIGHT, WIDTH), np.uint8)))
     ]
 
