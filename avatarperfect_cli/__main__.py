@@ -12,10 +12,10 @@ import sys
 from pathlib import Path
 
 # commands that take the workspace lock; any of their positional arguments may name the workspace
-# apply-edit --list reads the workspace without needing its lock
+# apply-edit --list reads the workspace without needing its lock, and evaluate scores a committed avatar without it
 READ_ONLY_OPTION = "--list"
 LOCKING_COMMANDS = frozenset(
-    {"train-initial", "visibility", "suggest", "apply-edit", "refine", "evaluate", "simulate-user", "report", "loop", "relink"}
+    {"train-initial", "visibility", "suggest", "apply-edit", "refine", "simulate-user", "report", "loop", "relink"}
 )
 
 

@@ -25,7 +25,7 @@ from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
 from avatarperfect_cli.io import atomic_write_text, write_image
 from avatarperfect_cli.io.atomic import atomic_folder
 from avatarperfect_cli.io.outputs import check_writable_folder
-from avatarperfect_cli.io.workspace import MANIFEST, Workspace, locked_workspace
+from avatarperfect_cli.io.workspace import MANIFEST, Workspace, open_workspace, reading_workspace
 from avatarperfect_cli.stages.workspace_data import training_camera, transl_offset
 from avatarperfect_cli.training import metrics
 from avatarperfect_cli.training.pose_fit import PoseFitConfig, fit_poses_to_images, fit_poses_to_masks
@@ -64,9 +64,11 @@ def evaluate(
     Writes ws/eval/NNN/<test folder name>/metrics.json (per frame and mean) and comparison.png; with
     `refine_poses` also the refined poses' scores (metrics.json's "refined_poses") and comparison_refined.png.
     Returns the metrics.
+
+    A committed avatar never changes, so the scoring needs no lock and runs beside a stage that holds one;
+    the lock is taken only to write the results, when it is free (see `reading_workspace`).
     """
-    with locked_workspace(workspace_root) as workspace:
-        return _evaluate(workspace, test_dataset, iteration, frames, progress, poses, device, refine_poses)
+    return _evaluate(open_workspace(workspace_root), test_dataset, iteration, frames, progress, poses, device, refine_poses)
 
 
 def _evaluate(
@@ -107,7 +109,7 @@ def _evaluate(
         body_pose, transl = refined_test_poses(avatar, test, progress)
         refined_frames, pictures["comparison_refined.png"] = _score(avatar, test, body_pose, transl, progress)
         result["refined_poses"] = {"mean": _mean(refined_frames), "per_frame": refined_frames}
-    with atomic_folder(out_dir) as staging:
+    with reading_workspace(workspace.root), atomic_folder(out_dir) as staging:
         atomic_write_text(staging / "metrics.json", json.dumps(result, indent=2) + "\n")
         for name, picture in pictures.items():
             write_image(staging / name, picture)

@@ -10,7 +10,7 @@ from typer.testing import CliRunner
 
 from avatarperfect_cli.cli import app
 from avatarperfect_cli.io import read_image
-from avatarperfect_cli.io.workspace import open_workspace
+from avatarperfect_cli.io.workspace import open_workspace, workspace_lock
 from avatarperfect_cli.stages import train_initial as train_initial_stage
 
 SAMPLE = Path(__file__).resolve().parents[2] / "examples" / "sample"
@@ -69,6 +69,14 @@ def test_evaluate_writes_metrics_and_grid(workspace: Path):
     assert 0.5 < metrics["mean"]["iou"] <= 1 and 10 < metrics["mean"]["psnr"] < 60 and 0 < metrics["mean"]["ssim"] <= 1
     grid = read_image(workspace / "eval" / "000" / "test" / "comparison.png")
     assert grid.shape[1] == 3 * 64
+
+
+def test_evaluate_runs_beside_a_stage_that_holds_the_lock(workspace: Path):
+    """Scoring a committed avatar reads it without the lock, so a refine in progress does not block it."""
+    with workspace_lock(workspace):
+        result = invoke("evaluate", workspace, "--test", SAMPLE / "test", "--frames", "0:19:10")
+        assert result.exit_code == 0, result.output
+    assert json.loads((workspace / "eval" / "000" / "test" / "metrics.json").read_text())["frames"] == 2
 
 
 def test_evaluate_with_refined_poses_reports_both(workspace: Path):
