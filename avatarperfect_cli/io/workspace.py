@@ -251,7 +251,11 @@ def reading_workspace(root: Path) -> Iterator[Workspace]:
     be created), it is held for the block and a killed stage's leftovers are cleaned up as `locked_workspace`
     does; when another stage holds it, or its folder is read-only, the workspace is read as it is."""
     root = Path(root)
-    open_workspace(root)  # a one-line refusal before anything is created
+    try:
+        open_workspace(root)  # a one-line refusal before anything is created
+    except AvatarPerfectError:
+        _remove_stale_lock(root)
+        raise
     with ExitStack() as lock:
         locked = False
         try:
@@ -293,6 +297,24 @@ def _remove_if_empty(folder: Path) -> None:
         folder.rmdir()
     except OSError:
         pass  # not empty (something else appeared there) or already gone
+
+
+def _remove_stale_lock(root: Path) -> None:
+    """Delete the lock file that a stage killed before its workspace appeared left beside `root`, unless a
+    stage holds it (the file is removed under its lock, as `workspace_lock` removes it on release)."""
+    path = lock_path(root)
+    try:
+        descriptor = os.open(path, os.O_RDWR)
+    except OSError:
+        return  # no lock file, or one this command may not touch
+    try:
+        fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        if os.stat(path).st_ino == os.fstat(descriptor).st_ino:
+            path.unlink()
+    except OSError:
+        pass  # held by a running stage, or already removed
+    finally:
+        os.close(descriptor)
 
 
 def refuse_if_busy(root: Path) -> None:

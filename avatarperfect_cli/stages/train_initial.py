@@ -191,19 +191,23 @@ def _transl_offset(
 
 def _fit_body(
     video: VideoDataset, start: BodyTemplate, body_model: dict, offset: torch.Tensor, anny: object | None,
-    progress: bool, console: Console, starts: tuple[dict[str, float], ...] | None = None,
+    progress: bool, console: Console, with_poses: bool,
 ) -> tuple[BodyTemplate, dict, torch.Tensor]:  # fmt: skip
     """The body fitted to the video's masks from the `start` template at `offset`, anny's phenotype with
-    `anny` (a loaded model) from `starts` (default: BodyFitConfig's): the fitted template, its description
-    and the offset (3,)."""
-    config = BodyFitConfig() if starts is None else BodyFitConfig(starts=starts)
+    `anny` (a loaded model): the fitted template, its description and the offset (3,). With `with_poses`
+    the video's poses are fitted together with the body and replace its own, in place (the translations
+    without the offset)."""
+    config, poses = BodyFitConfig(), PoseFitConfig() if with_poses else None
     steps = (len(config.starts) if anny is not None else 1) * config.start_steps + config.shape_steps
     clock = time.perf_counter()
-    with Progress(TextColumn("[bold]fitting the body"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=Console(stderr=True), transient=True, disable=not progress) as bar:  # fmt: skip
+    with Progress(TextColumn("[bold]fitting the body" + (" and the poses" if with_poses else "")), BarColumn(),
+                  MofNCompleteColumn(), TimeElapsedColumn(), console=Console(stderr=True), transient=True,
+                  disable=not progress) as bar:  # fmt: skip
         task = bar.add_task("body", total=steps)
-        result = fit_body(video, offset, config, anny_model=anny, template=None if anny else start,
+        result = fit_body(video, offset, config, anny_model=anny, template=None if anny else start, poses=poses,
                           on_step=lambda: bar.advance(task))  # fmt: skip
+    if result.body_pose is not None:
+        video.body_pose, video.transl = result.body_pose, result.transl - result.transl_offset
     described = dict(body_model)
     if anny is not None:
         described["phenotype"] = result.phenotype
@@ -214,7 +218,7 @@ def _fit_body(
     described["bone_offsets"] = result.bone_offsets.tolist()
     shape = ", ".join(f"{name} {value:.2f}" for name, value in result.phenotype.items())
     console.print(
-        f"body fitted to the masks in {time.perf_counter() - clock:.0f} s: silhouette distance "
+        f"body{' and poses' if with_poses else ''} fitted to the masks in {time.perf_counter() - clock:.0f} s: silhouette distance "
         f"{result.start_loss:.2f} -> {result.loss:.2f} px" + (f" ({shape})" if shape else ""),
         soft_wrap=True,
     )
@@ -249,19 +253,12 @@ def _train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool,
         check_masks(video)
     offset = _transl_offset(dataset, fit, video, template, body_model, console, search=fits_shape)
     start_row = (template, video.body_pose, video.transl + offset)
-    start_body = (template, dict(body_model))
     anny = load_anny_model(default_cache_dir()) if fits_shape and body_model["name"] == "anny" else None
     if fits_shape:
-        template, body_model, offset = _fit_body(video, *start_body, offset, anny, progress, console)
+        template, body_model, offset = _fit_body(video, template, body_model, offset, anny, progress, console, refine_poses)
     video.transl = video.transl + offset
-    if refine_poses:
+    if refine_poses and not fits_shape:
         _fit_poses(video, template, progress, console)
-        if fits_shape:  # the body was fitted to the given poses: fit it again to the fitted ones, then the poses
-            video.transl = video.transl - offset
-            starts = (body_model.get("phenotype", {}),)
-            template, body_model, offset = _fit_body(video, *start_body, offset, anny, progress, console, starts)
-            video.transl = video.transl + offset
-            _fit_poses(video, template, progress, console)
     picture = None
     if fits_shape or refine_poses:
         picture, (iou_start, iou_fitted) = fit_picture(video, [start_row, (template, video.body_pose, video.transl)])

@@ -11,6 +11,10 @@ They are differentiable in the template through anny's torch forward pass, so Ad
     offset         a translation in the image plane added to every frame (along the viewing direction a
                    silhouette only tells the body's size).
 The fit starts from a few phenotypes (the middle, a more male and a more female body) and continues the best.
+With estimated poses (`poses` given) the best start continues over every frame with each frame's pose fitted
+at the same time (`pose_fit.PoseOffsets`: smooth along the video, near the given pose): a pose estimator's
+errors differ from frame to frame and the body is the same in all, so the fit cannot bend a bone to absorb
+one frame's wrong joint angle, which fitting body and poses in turn does.
 """
 
 from __future__ import annotations
@@ -29,7 +33,8 @@ from avatarperfect_cli.body.anny_model import PHENOTYPES, anny_shape, joint_weig
 from avatarperfect_cli.body.base import SMPL_MIRROR, joint_displacements
 from avatarperfect_cli.datasets import VideoDataset
 from avatarperfect_cli.datasets.people_snapshot import downscaled_camera
-from avatarperfect_cli.training.silhouette import silhouette_loss, silhouettes, surface_points
+from avatarperfect_cli.training.pose_fit import PoseFitConfig, PoseOffsets
+from avatarperfect_cli.training.silhouette import Silhouettes, silhouette_loss, silhouettes, surface_points
 from avatarperfect_cli.training.template_offset import silhouette_avatar
 
 # Phenotype values are stored rounded to this many decimals, so a recorded body rebuilds the same template.
@@ -74,13 +79,16 @@ class BodyFitConfig:
 class BodyFit:
     """phenotype: anny's six values; bone_offsets: (24, 3) metres, canonical frame (`BodyTemplate.with_bone_offsets`);
     transl_offset: (3,) metres, world frame, added to every frame's transl; loss: the final silhouette loss,
-    pixels; start_loss: the same for the starting body at the starting offset."""
+    pixels; start_loss: the same for the starting body at the starting offset; body_pose (T, 24, 3) radians
+    and transl (T, 3) metres (the offset included): the video's poses fitted with the body, when asked for."""
 
     phenotype: dict[str, float]
     bone_offsets: torch.Tensor
     transl_offset: torch.Tensor
     loss: float
     start_loss: float
+    body_pose: torch.Tensor | None = None
+    transl: torch.Tensor | None = None
 
 
 def _mirrored(bone_offsets: torch.Tensor) -> torch.Tensor:
@@ -155,6 +163,15 @@ class _FixedShape:
         return self.points, self.joints
 
 
+class _Compared:
+    """What one phase of the fit compares: the frames' silhouettes, the body's linearised points and their
+    skinning weights (P, 24), and the per-frame pose corrections (None: the given poses are kept)."""
+
+    def __init__(self, data: Silhouettes, shape_near: _LinearisedAnny | _FixedShape, weights: torch.Tensor,
+                 poses: PoseOffsets | None = None) -> None:  # fmt: skip
+        self.data, self.shape_near, self.weights, self.poses = data, shape_near, weights, poses
+
+
 def fit_body(
     video: VideoDataset,
     initial_offset: torch.Tensor,
@@ -162,10 +179,13 @@ def fit_body(
     *,
     anny_model: object | None = None,
     template: BodyTemplate | None = None,
+    poses: PoseFitConfig | None = None,
     on_step: Callable[[], None] | None = None,
 ) -> BodyFit:
     """Fit the body to the video's masks: anny's phenotype (with `anny_model`, a loaded `anny.Anny`) or the
-    given `template`'s shape as it is, plus the skeleton correction and the image-plane offset.
+    given `template`'s shape as it is, plus the skeleton correction and the image-plane offset; with `poses`
+    also every frame's pose, together with the body (the shape phase then runs over every frame, at the pose
+    fit's resolution and point counts).
 
     initial_offset: (3,) metres, world frame, where the start body already lands on the masks
     (`template_offset.fit_transl_offset`), kept along the viewing direction; on_step: called after every
@@ -173,72 +193,88 @@ def fit_body(
     """
     config = config or BodyFitConfig()
     frames = torch.linspace(0, len(video) - 1, min(config.frames, len(video))).round().long().unique()
-    data = silhouettes(video, frames, config.resolution, config.contour_pixels)
     if anny_model is not None:
         with torch.no_grad():
             start_vertices, _ = anny_shape(anny_model, torch.full((len(PHENOTYPES),), 0.5, dtype=torch.float64))
-        chosen = surface_points(start_vertices.float(), anny_model.faces.long(), config.points)
-        point_weights = joint_weights(anny_model)[chosen].float()
-        shape_near: _LinearisedAnny | _FixedShape = _LinearisedAnny(anny_model, chosen)
+        faces, weights = anny_model.faces.long(), joint_weights(anny_model).float()
         starts = config.starts
     elif template is not None:
-        chosen = surface_points(template.vertices.float(), template.faces, config.points)
-        point_weights = template.weights[chosen].float()
-        shape_near = _FixedShape(template, chosen)
+        start_vertices, faces, weights = template.vertices.float(), template.faces, template.weights.float()
         starts = ({},)
     else:
         raise ValueError("fit_body needs anny_model or template")
-    axes = data.camera.world_to_camera[:2, :3].float()  # the camera's right and down axes, world frame
 
-    def loss_of(shape: _BodyShape, with_bones: bool) -> tuple[torch.Tensor, torch.Tensor]:
-        points, joints = shape_near(shape.phenotype())
+    def compared(data: Silhouettes, points: int, offsets: PoseOffsets | None = None) -> _Compared:
+        chosen = surface_points(start_vertices.float(), faces, points)
+        near = _LinearisedAnny(anny_model, chosen) if anny_model is not None else _FixedShape(template, chosen)
+        return _Compared(data, near, weights[chosen], offsets)
+
+    subset = compared(silhouettes(video, frames, config.resolution, config.contour_pixels), config.points)
+    if poses is None:
+        whole = subset
+    else:
+        every = silhouettes(video, torch.arange(len(video)), poses.resolution, poses.contour_pixels)
+        whole = compared(every, poses.points, PoseOffsets(video.frame_ids, poses))
+    axes = subset.data.camera.world_to_camera[:2, :3].float()  # the camera's right and down axes, world frame
+
+    def loss_of(shape: _BodyShape, on: _Compared, with_bones: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        points, joints = on.shape_near(shape.phenotype())
         if with_bones:
             displacements = joint_displacements(shape.bone_offsets())
-            points = points + point_weights @ displacements
+            points = points + on.weights @ displacements
             joints = joints + displacements
-        transl = data.transl + initial_offset + shape.image_offset @ axes
-        posed = skin_points(points, point_weights, forward_kinematics(data.body_pose, joints, transl))
-        fit = silhouette_loss(posed, data, config.huber).mean()
+        body_pose, transl = on.data.body_pose, on.data.transl + initial_offset + shape.image_offset @ axes
+        if on.poses is not None:
+            body_pose, transl = body_pose + on.poses.pose, transl + on.poses.transl
+        posed = skin_points(points, on.weights, forward_kinematics(body_pose, joints, transl))
+        fit = silhouette_loss(posed, on.data, config.huber).mean()
         prior = config.phenotype_prior * ((shape.phenotype() - 0.5) / 0.5).square().sum()
         if with_bones:
             prior = prior + config.bone_prior * (shape.bone_offsets() / 0.01).square().sum()
+        if on.poses is not None:
+            prior = prior + on.poses.penalty(posed)
         return fit + prior, fit
 
-    def optimise(shape: _BodyShape, steps: int, with_bones: bool) -> float:
+    def optimise(shape: _BodyShape, on: _Compared, steps: int, with_bones: bool) -> float:
         groups = [
             {"params": [shape.logits], "lr": config.phenotype_rate},
             {"params": [shape.image_offset], "lr": config.offset_rate},
         ]
         if with_bones:
             groups.append({"params": [shape.bones], "lr": config.bone_rate})
+        if on.poses is not None:
+            groups.extend(on.poses.param_groups())
         optimizer = torch.optim.Adam(groups)
         for step in range(steps):
             if step % config.relinearise_every == 0:
-                shape_near.linearise(shape.phenotype())
+                on.shape_near.linearise(shape.phenotype())
             optimizer.zero_grad(set_to_none=True)
-            loss_of(shape, with_bones)[0].backward()
+            loss_of(shape, on, with_bones)[0].backward()
             optimizer.step()
             if on_step is not None:
                 on_step()
-        shape_near.linearise(shape.phenotype())
+        on.shape_near.linearise(shape.phenotype())
         with torch.no_grad():
-            return float(loss_of(shape, with_bones)[0])
+            return float(loss_of(shape, on, with_bones)[0])
 
     with torch.no_grad():
-        shape_near.linearise(torch.full((len(PHENOTYPES),), 0.5))
-        start_loss = float(loss_of(_BodyShape({}), False)[1])
+        subset.shape_near.linearise(torch.full((len(PHENOTYPES),), 0.5))
+        start_loss = float(loss_of(_BodyShape({}), subset, False)[1])
     candidates = []
     for start in starts:
         shape = _BodyShape(start)
-        candidates.append((optimise(shape, config.start_steps, False), shape))
+        candidates.append((optimise(shape, subset, config.start_steps, False), shape))
     best = min(candidates, key=lambda candidate: candidate[0])[1]
-    optimise(best, config.shape_steps, True)
+    optimise(best, whole, config.shape_steps, True)
     with torch.no_grad():
-        loss = float(loss_of(best, True)[1])
+        loss = float(loss_of(best, whole, True)[1])
         phenotype = {name: round(float(value), PHENOTYPE_DECIMALS) for name, value in zip(PHENOTYPES, best.phenotype())}
         phenotype = phenotype if anny_model is not None else {}
-        offset = initial_offset + best.image_offset @ axes
-    return BodyFit(phenotype, best.bone_offsets().detach().clone(), offset.detach().clone(), loss, start_loss)
+        offset = (initial_offset + best.image_offset @ axes).detach().clone()
+    result = BodyFit(phenotype, best.bone_offsets().detach().clone(), offset, loss, start_loss)
+    if whole.poses is not None:
+        result.body_pose, result.transl = whole.poses.applied(video.body_pose, video.transl + offset)
+    return result
 
 
 # Colours of the fit picture: mask pixels the body misses, body pixels outside the mask, both.

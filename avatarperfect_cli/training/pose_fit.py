@@ -76,6 +76,37 @@ def acceleration(posed: torch.Tensor, times: torch.Tensor) -> torch.Tensor:
     return (velocity[1:] - velocity[:-1]) / (0.5 * (gaps[1:] + gaps[:-1]))
 
 
+class PoseOffsets(torch.nn.Module):
+    """Per-frame corrections of a video's poses: axis-angle offsets (T, 24, 3), radians, the root's included,
+    and translation offsets (T, 3), metres; `penalty` holds the pose fit's smoothness and prior terms.
+
+    times: (T,) the frames' numbers (time for the smoothness term)."""
+
+    def __init__(self, times: torch.Tensor, config: PoseFitConfig) -> None:
+        super().__init__()
+        self.times, self.config = times.double(), config
+        self.pose = torch.nn.Parameter(torch.zeros(len(times), 24, 3))
+        self.transl = torch.nn.Parameter(torch.zeros(len(times), 3))
+
+    def param_groups(self) -> list[dict]:
+        return [{"params": [self.pose], "lr": self.config.pose_rate}, {"params": [self.transl], "lr": self.config.transl_rate}]
+
+    def penalty(self, posed: torch.Tensor) -> torch.Tensor:
+        """Smoothness of `posed` (T, P, 3) world points, metres, along the video plus the offsets' prior, pixels."""
+        config = self.config
+        smooth = acceleration(posed * 100.0, self.times).square().sum(dim=-1).mean() if len(self.times) > 2 else posed.sum() * 0
+        prior = (self.pose / 0.1).square().sum(dim=-1).mean() * config.pose_prior
+        prior = prior + (self.transl / 0.05).square().sum(dim=-1).mean() * config.transl_prior
+        return config.smoothness * smooth + prior
+
+    def applied(self, body_pose: torch.Tensor, transl: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The corrected poses (T, 24, 3) and translations (T, 3), in the dtype of the given ones, detached."""
+        return (
+            (body_pose.float() + self.pose.detach()).to(body_pose.dtype),
+            (transl.float() + self.transl.detach()).to(transl.dtype),
+        )
+
+
 def fit_poses_to_masks(
     video: VideoDataset, body: SkinnedPoints, config: PoseFitConfig | None = None, on_step: Callable[[], None] | None = None
 ) -> PoseFit:
@@ -84,21 +115,14 @@ def fit_poses_to_masks(
     kept fixed; on_step: called after each step (progress)."""
     config = config or PoseFitConfig()
     data = silhouettes(video, torch.arange(len(video)), config.resolution, config.contour_pixels)
-    times = video.frame_ids.double()
-    pose_offsets = torch.zeros_like(data.body_pose, requires_grad=True)
-    transl_offsets = torch.zeros_like(data.transl, requires_grad=True)
+    offsets = PoseOffsets(video.frame_ids, config)
 
     def losses() -> tuple[torch.Tensor, torch.Tensor]:
-        posed = body.posed(data.body_pose + pose_offsets, data.transl + transl_offsets)  # (T, P, 3)
+        posed = body.posed(data.body_pose + offsets.pose, data.transl + offsets.transl)  # (T, P, 3)
         fit = silhouette_loss(posed, data, config.huber).mean()
-        smooth = acceleration(posed * 100.0, times).square().sum(dim=-1).mean() if len(video) > 2 else fit * 0
-        prior = (pose_offsets / 0.1).square().sum(dim=-1).mean() * config.pose_prior
-        prior = prior + (transl_offsets / 0.05).square().sum(dim=-1).mean() * config.transl_prior
-        return fit + config.smoothness * smooth + prior, fit
+        return fit + offsets.penalty(posed), fit
 
-    optimizer = torch.optim.Adam(
-        [{"params": [pose_offsets], "lr": config.pose_rate}, {"params": [transl_offsets], "lr": config.transl_rate}]
-    )
+    optimizer = torch.optim.Adam(offsets.param_groups())
     with torch.no_grad():
         start_loss = float(losses()[1])
     for _ in range(config.steps):
@@ -109,9 +133,7 @@ def fit_poses_to_masks(
             on_step()
     with torch.no_grad():
         loss = float(losses()[1])
-    body_pose = (video.body_pose.float() + pose_offsets.detach()).to(video.body_pose.dtype)
-    transl = (video.transl.float() + transl_offsets.detach()).to(video.transl.dtype)
-    return PoseFit(body_pose, transl, loss, start_loss)
+    return PoseFit(*offsets.applied(video.body_pose, video.transl), loss, start_loss)
 
 
 @dataclass

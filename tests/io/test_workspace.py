@@ -117,6 +117,23 @@ def test_a_killed_holder_leaves_no_stale_lock(tmp_path: Path):
         pass
 
 
+def test_a_read_only_command_removes_the_lock_file_a_stage_killed_before_its_workspace_left(tmp_path: Path):
+    """A train-initial killed hard leaves `.ws.lock` and no workspace; `apply-edit --list` refuses the missing
+    workspace and removes the lock file, unless a running stage holds it."""
+    from avatarperfect_cli.io.workspace import lock_path, reading_workspace
+
+    lock_path(tmp_path / "ws").write_text("12345\n")  # what the killed stage left
+    with workspace_lock(tmp_path / "ws"):  # held: the file stays
+        with pytest.raises(AvatarPerfectError, match="ws"), reading_workspace(tmp_path / "ws"):
+            pass
+        assert lock_path(tmp_path / "ws").exists()
+        (tmp_path / "unrelated.lock").write_text("")
+    lock_path(tmp_path / "ws").write_text("12345\n")  # released holders remove it: leave it again
+    with pytest.raises(AvatarPerfectError, match="ws"), reading_workspace(tmp_path / "ws"):
+        pass
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["unrelated.lock"]
+
+
 def test_lock_cleans_what_a_killed_stage_left(tmp_path: Path):
     root = tmp_path / "ws"
     with new_workspace(root, {"iteration": 0, "history": [{"stage": "train-initial", "avatar": 0}]}) as staged:

@@ -3,6 +3,7 @@ known amount)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -64,3 +65,41 @@ def test_a_mask_with_no_body_to_fit_is_named(video: VideoDataset, fill: bool) ->
     broken = VideoDataset(**{**vars(video), "masks": masks})
     with pytest.raises(AvatarPerfectError, match=f"frame {int(video.frame_ids[2])} is"):
         silhouettes(broken, torch.arange(len(video)), 64, 50)
+
+
+def test_body_and_noisy_poses_fitted_together_land_near_the_true_posed_joints() -> None:
+    """From anny's middle phenotype, with poses carrying a pose estimator's noise (3 degrees per joint axis):
+    fitting body and poses together brings the posed joints closer to the truth than the body fitted to the
+    noisy poses as given, and than the noisy poses on the subject's own body."""
+    from avatarperfect_cli.sample.motions import Motion, with_estimation_noise
+    from avatarperfect_cli.training.pose_fit import PoseFitConfig
+
+    video = load_people_snapshot(SAMPLE, FrameRange(0, 39, 1), downscale=1)  # consecutive frames, as a video has
+    noisy_motion = with_estimation_noise(Motion(video.body_pose.numpy(), video.transl.numpy()), 3.0, seed=1)
+    noisy = VideoDataset(**{**vars(video), "body_pose": torch.as_tensor(noisy_motion.body_pose, dtype=video.body_pose.dtype),
+                            "transl": torch.as_tensor(noisy_motion.transl, dtype=video.transl.dtype)})  # fmt: skip
+    anny = load_anny_model(default_cache_dir(), progress=False)
+    poses = PoseFitConfig(resolution=192, points=1500, contour_pixels=200)
+    together = fit_body(noisy, torch.zeros(3), replace(QUICK, shape_steps=150), anny_model=anny, poses=poses)
+    alone = fit_body(noisy, torch.zeros(3), QUICK, anny_model=anny)
+    truth_body = load_body_template("anny", phenotype=video.subject["phenotype"])
+    truth = _posed_joints(truth_body, video.body_pose, video.transl)
+
+    def error(fit, body_pose: torch.Tensor, transl: torch.Tensor) -> float:
+        body = load_body_template("anny", phenotype=fit.phenotype).with_bone_offsets(fit.bone_offsets)
+        return float((_posed_joints(body, body_pose, transl) - truth).norm(dim=-1).mean())
+
+    given = float((_posed_joints(truth_body, noisy.body_pose, noisy.transl) - truth).norm(dim=-1).mean())
+    joint = error(together, together.body_pose, together.transl)
+    # measured: given 5.9 cm, the body fitted alone 6.3 cm, together 2.4 cm
+    assert joint < 0.45 * given, (given, joint)
+    assert joint < 0.45 * error(alone, noisy.body_pose, noisy.transl + alone.transl_offset), joint
+    assert together.body_pose.shape == video.body_pose.shape and together.transl.shape == video.transl.shape
+
+
+def _posed_joints(template, body_pose: torch.Tensor, transl: torch.Tensor) -> torch.Tensor:
+    """(T, 24, 3) joints of `template` posed by body_pose (T, 24, 3) and transl (T, 3), metres."""
+    from avatarperfect_cli.body import forward_kinematics
+
+    transforms = forward_kinematics(body_pose.float(), template.rest_joints.float(), transl.float())
+    return (transforms[..., :3, :3] @ template.rest_joints.float()[:, :, None] + transforms[..., :3, 3:])[..., 0]
