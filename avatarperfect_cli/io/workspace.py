@@ -254,7 +254,7 @@ def reading_workspace(root: Path) -> Iterator[Workspace]:
     try:
         open_workspace(root)  # a one-line refusal before anything is created
     except AvatarPerfectError:
-        _remove_stale_lock(root)
+        _tidy_after_killed_stage(root)
         raise
     with ExitStack() as lock:
         locked = False
@@ -299,9 +299,9 @@ def _remove_if_empty(folder: Path) -> None:
         pass  # not empty (something else appeared there) or already gone
 
 
-def _remove_stale_lock(root: Path) -> None:
-    """Delete the lock file that a stage killed before its workspace appeared left beside `root`, unless a
-    stage holds it (the file is removed under its lock, as `workspace_lock` removes it on release)."""
+def _tidy_after_killed_stage(root: Path) -> None:
+    """Remove what a stage killed before its workspace appeared left beside `root` (its staging folder, or a
+    retired workspace put back) and then its lock file, unless a stage holds the lock. Creates nothing."""
     path = lock_path(root)
     try:
         descriptor = os.open(path, os.O_RDWR)
@@ -310,6 +310,7 @@ def _remove_stale_lock(root: Path) -> None:
     try:
         fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
         if os.stat(path).st_ino == os.fstat(descriptor).st_ino:
+            recover_folder(Path(os.path.abspath(root)))
             path.unlink()
     except OSError:
         pass  # held by a running stage, or already removed

@@ -117,18 +117,19 @@ def test_a_killed_holder_leaves_no_stale_lock(tmp_path: Path):
         pass
 
 
-def test_a_read_only_command_removes_the_lock_file_a_stage_killed_before_its_workspace_left(tmp_path: Path):
-    """A train-initial killed hard leaves `.ws.lock` and no workspace; `apply-edit --list` refuses the missing
-    workspace and removes the lock file, unless a running stage holds it."""
+def test_a_read_only_command_removes_what_a_stage_killed_before_its_workspace_left(tmp_path: Path):
+    """A train-initial killed hard while saving leaves `.ws.lock`, its staging folder and no workspace;
+    `apply-edit --list` refuses the missing workspace and removes both, unless a running stage holds the lock."""
     from avatarperfect_cli.io.workspace import lock_path, reading_workspace
 
-    lock_path(tmp_path / "ws").write_text("12345\n")  # what the killed stage left
-    with workspace_lock(tmp_path / "ws"):  # held: the file stays
+    with workspace_lock(tmp_path / "ws"):  # held by a running stage: its lock file and staging folder stay
+        (tmp_path / ".ws.abcd1234.tmp" / "avatar").mkdir(parents=True)
         with pytest.raises(AvatarPerfectError, match="ws"), reading_workspace(tmp_path / "ws"):
             pass
-        assert lock_path(tmp_path / "ws").exists()
+        assert lock_path(tmp_path / "ws").exists() and (tmp_path / ".ws.abcd1234.tmp").exists()
         (tmp_path / "unrelated.lock").write_text("")
-    lock_path(tmp_path / "ws").write_text("12345\n")  # released holders remove it: leave it again
+    lock_path(tmp_path / "ws").write_text("12345\n")  # what a stage killed while saving leaves
+    (tmp_path / ".ws.abcd1234.tmp" / "avatar").mkdir(parents=True, exist_ok=True)
     with pytest.raises(AvatarPerfectError, match="ws"), reading_workspace(tmp_path / "ws"):
         pass
     assert sorted(p.name for p in tmp_path.iterdir()) == ["unrelated.lock"]
