@@ -1,0 +1,110 @@
+"""The own-video path end to end on a synthetic subject whose truth is known (docs/real-data.md).
+
+    python -m benchmarks.own_video OUT [--preset default] [--resolution 512] [--frames 100] [--iterations 2000]
+
+1. `make-sample`'s turn-around of the preset (OUT/sample/train: exact poses, exact masks, white background).
+2. The same frames as a user's video: each person composited over a background that is not white (a
+   gradient with a floor and a wall pattern), compressed to OUT/video.mp4.
+3. `prepare` the video (its assumed field of view and anny's middle body, as for any video), then
+   `train-initial` on the even frames (the body and the poses fitted to the masks, as for any prepared folder).
+4. `evaluate --refine-poses` on the odd frames, against the true frames: OUT/truth-test holds the sample's
+   images and masks with the prepared folder's camera and poses, so the score measures the avatar and not
+   MediaPipe's masks.
+5. The reference: the same even frames with their exact poses and the subject's own body
+   (`--body-shape exact`), scored on the odd frames with the exact poses.
+
+Prints one row per path: held-out IoU, PSNR and SSIM (given and refined poses), the Gaussian count and the
+share of Gaussians longer than 3 cm; the comparison pictures are in each workspace's eval folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from avatarperfect_cli.datasets import load_people_snapshot, write_people_snapshot
+from avatarperfect_cli.io.video import frame_writer
+from avatarperfect_cli.io.workspace import open_workspace
+from avatarperfect_cli.sample.generate import make_sample
+from benchmarks.mask_error import long_shares
+
+CLI = [sys.executable, "-m", "avatarperfect_cli"]
+
+
+def background(height: int, width: int) -> np.ndarray:
+    """(H, W, 3) float in [0, 1]: a grey-blue wall with a faint tile pattern over a brown floor."""
+    rows, cols = np.mgrid[0:height, 0:width].astype(np.float64)
+    wall = np.stack([0.55 + 0.1 * rows / height, 0.6 + 0.05 * cols / width, 0.7 * np.ones_like(rows)], axis=-1)
+    tiles = ((rows // max(height // 12, 1) + cols // max(width // 12, 1)) % 2)[..., None]
+    floor = np.array([0.45, 0.35, 0.25]) * (0.8 + 0.2 * cols[..., None] / width)
+    picture = np.where((rows > 0.8 * height)[..., None], floor, wall - 0.05 * tiles)
+    return np.clip(picture, 0.0, 1.0)
+
+
+def write_video(train: Path, output: Path) -> None:
+    """The training folder's people over `background`, as an .mp4 (lossy, like a phone's)."""
+    video = load_people_snapshot(train, downscale=1)
+    scene = torch.from_numpy(background(video.camera.height, video.camera.width)).float()
+    with frame_writer(output, video.camera.width, video.camera.height, 30.0) as write:
+        for image, mask in zip(video.images, video.masks):
+            write(torch.where(mask[..., None], image, scene))
+
+
+def truth_test_folder(sample_train: Path, prepared: Path, out: Path) -> None:
+    """The prepared folder's camera and poses with the sample's true images and masks."""
+    truth = load_people_snapshot(sample_train, downscale=1)
+    estimate = load_people_snapshot(prepared, downscale=1)
+    if not torch.equal(truth.frame_ids, estimate.frame_ids):
+        raise SystemExit(f"{prepared} has frames {estimate.frame_ids.tolist()}, the video {len(truth)}")
+    images = (truth.images.numpy() * 255.0).round().astype(np.uint8)
+    write_people_snapshot(out, images, truth.masks.numpy(), estimate.body_pose, estimate.transl, estimate.camera, subject=estimate.subject)
+
+
+def scores(workspace: Path, test: Path) -> dict:
+    """The latest metrics.json of `workspace` on `test`."""
+    return json.loads((open_workspace(workspace).eval_dir() / test.name / "metrics.json").read_text())
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("out", type=Path)
+    parser.add_argument("--preset", default="default")
+    parser.add_argument("--resolution", type=int, default=512)
+    parser.add_argument("--frames", type=int, default=100)
+    parser.add_argument("--iterations", type=int, default=2000)
+    args = parser.parse_args()
+    out, frames = args.out, args.frames
+    train, even, odd = out / "sample" / "train", f"0:{frames - 1}:2", f"1:{frames - 1}:2"
+    if not (train / "poses.npz").is_file():
+        make_sample(out / "sample", args.preset, args.resolution, train_frames=frames, test_frames=1)
+    if not (out / "video.mp4").is_file():
+        write_video(train, out / "video.mp4")
+    if not (out / "prepared" / "poses.npz").is_file():
+        subprocess.run([*CLI, "prepare", str(out / "video.mp4"), str(out / "prepared")], check=True)
+    truth_test_folder(train, out / "prepared", out / "truth-test")  # refuses a prepared folder missing frames
+    run = lambda *command: subprocess.run([*CLI, *map(str, command)], check=True)  # noqa: E731
+    iterations = ("--iterations", args.iterations)
+    run("train-initial", out / "prepared", out / "ws-own", "--frames", even, *iterations, "--force")
+    run("evaluate", out / "ws-own", "--test", out / "truth-test", "--frames", odd, "--refine-poses")
+    run("train-initial", train, out / "ws-exact", "--frames", even, "--body-shape", "exact", *iterations, "--force")
+    run("evaluate", out / "ws-exact", "--test", train, "--frames", odd)
+    own, exact = scores(out / "ws-own", out / "truth-test"), scores(out / "ws-exact", train)
+    rows = [
+        ("own video, given poses", out / "ws-own", own["mean"]),
+        ("own video, refined poses", out / "ws-own", own["refined_poses"]["mean"]),
+        ("exact poses, exact body", out / "ws-exact", exact["mean"]),
+    ]
+    print("| path | IoU | PSNR (dB) | SSIM | Gaussians | > 3 cm |\n|---|---:|---:|---:|---:|---:|")
+    for label, workspace, mean in rows:
+        count, shares = long_shares(open_workspace(workspace).require_avatar())
+        print(f"| {label} | {mean['iou']:.3f} | {mean['psnr']:.2f} | {mean['ssim']:.4f} | {count:,} | {100 * shares[0]:.2f} % |")
+
+
+if __name__ == "__main__":
+    main()
