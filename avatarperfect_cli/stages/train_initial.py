@@ -225,20 +225,23 @@ def _fit_body(
     return fitted, described, result.transl_offset
 
 
-def _fit_poses(video: VideoDataset, template: BodyTemplate, progress: bool, console: Console) -> None:
-    """Fit the video's poses (translations with their offset) to its masks, in place."""
+def _fit_poses(video: VideoDataset, template: BodyTemplate, progress: bool, console: Console) -> torch.Tensor:
+    """Fit the video's poses (translations with their offset) to its masks, in place; returns the translation
+    correction (3,) all frames share, metres, which belongs to the offset (the held-out frames need it too)."""
     config = PoseFitConfig()
     start = time.perf_counter()
     with Progress(TextColumn("[bold]fitting the poses"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   console=Console(stderr=True), transient=True, disable=not progress) as bar:  # fmt: skip
         task = bar.add_task("poses", total=config.steps)
         result = fit_poses_to_masks(video, SkinnedPoints.of_template(template, config.points), config, on_step=lambda: bar.advance(task))
+    shared = (result.transl - video.transl).float().mean(dim=0)
     video.body_pose, video.transl = result.body_pose, result.transl
     console.print(
         f"poses fitted to the masks in {time.perf_counter() - start:.0f} s: silhouette distance "
         f"{result.start_loss:.2f} -> {result.loss:.2f} px",
         soft_wrap=True,
     )
+    return shared
 
 
 def _train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool, progress: bool) -> Path:
@@ -258,7 +261,7 @@ def _train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool,
         template, body_model, offset = _fit_body(video, template, body_model, offset, anny, progress, console, refine_poses)
     video.transl = video.transl + offset
     if refine_poses and not fits_shape:
-        _fit_poses(video, template, progress, console)
+        offset = offset + _fit_poses(video, template, progress, console)
     picture = None
     if fits_shape or refine_poses:
         picture, (iou_start, iou_fitted) = fit_picture(video, [start_row, (template, video.body_pose, video.transl)])

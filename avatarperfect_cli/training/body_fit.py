@@ -12,9 +12,10 @@ They are differentiable in the template through anny's torch forward pass, so Ad
                    silhouette only tells the body's size).
 The fit starts from a few phenotypes (the middle, a more male and a more female body) and continues the best.
 With estimated poses (`poses` given) the best start continues over every frame with each frame's pose fitted
-at the same time (`pose_fit.PoseOffsets`: smooth along the video, near the given pose): a pose estimator's
-errors differ from frame to frame and the body is the same in all, so the fit cannot bend a bone to absorb
-one frame's wrong joint angle, which fitting body and poses in turn does.
+at the same time (`pose_fit.PoseOffsets`: smooth along the video, near the given pose, averaging to zero
+over the video): a pose estimator's errors differ from frame to frame and the body is the same in all, so
+what every frame shares goes to the body and the offset, and the fit cannot bend a bone to absorb one
+frame's wrong joint angle, which fitting body and poses in turn does.
 """
 
 from __future__ import annotations
@@ -214,7 +215,7 @@ def fit_body(
         whole = subset
     else:
         every = silhouettes(video, torch.arange(len(video)), poses.resolution, poses.contour_pixels)
-        whole = compared(every, poses.points, PoseOffsets(video.frame_ids, poses))
+        whole = compared(every, poses.points, PoseOffsets(video.frame_ids, poses, zero_mean=True))
     axes = subset.data.camera.world_to_camera[:2, :3].float()  # the camera's right and down axes, world frame
 
     def loss_of(shape: _BodyShape, on: _Compared, with_bones: bool) -> tuple[torch.Tensor, torch.Tensor]:

@@ -80,16 +80,27 @@ class PoseOffsets(torch.nn.Module):
     """Per-frame corrections of a video's poses: axis-angle offsets (T, 24, 3), radians, the root's included,
     and translation offsets (T, 3), metres; `penalty` holds the pose fit's smoothness and prior terms.
 
-    times: (T,) the frames' numbers (time for the smoothness term)."""
+    times: (T,) the frames' numbers (time for the smoothness term); zero_mean: each joint's and the
+    translation's corrections average to zero over the video, for a fit whose body takes what all frames
+    share (a pose estimator's errors average out over a video; a body or an offset that is wrong is wrong in
+    every frame, and a correction all frames share would not reach the held-out frames)."""
 
-    def __init__(self, times: torch.Tensor, config: PoseFitConfig) -> None:
+    def __init__(self, times: torch.Tensor, config: PoseFitConfig, zero_mean: bool = False) -> None:
         super().__init__()
-        self.times, self.config = times.double(), config
-        self.pose = torch.nn.Parameter(torch.zeros(len(times), 24, 3))
-        self.transl = torch.nn.Parameter(torch.zeros(len(times), 3))
+        self.times, self.config, self.zero_mean = times.double(), config, zero_mean
+        self.raw_pose = torch.nn.Parameter(torch.zeros(len(times), 24, 3))
+        self.raw_transl = torch.nn.Parameter(torch.zeros(len(times), 3))
+
+    @property
+    def pose(self) -> torch.Tensor:
+        return self.raw_pose - self.raw_pose.mean(dim=0) if self.zero_mean else self.raw_pose
+
+    @property
+    def transl(self) -> torch.Tensor:
+        return self.raw_transl - self.raw_transl.mean(dim=0) if self.zero_mean else self.raw_transl
 
     def param_groups(self) -> list[dict]:
-        return [{"params": [self.pose], "lr": self.config.pose_rate}, {"params": [self.transl], "lr": self.config.transl_rate}]
+        return [{"params": [self.raw_pose], "lr": self.config.pose_rate}, {"params": [self.raw_transl], "lr": self.config.transl_rate}]
 
     def penalty(self, posed: torch.Tensor) -> torch.Tensor:
         """Smoothness of `posed` (T, P, 3) world points, metres, along the video plus the offsets' prior, pixels."""
@@ -101,10 +112,8 @@ class PoseOffsets(torch.nn.Module):
 
     def applied(self, body_pose: torch.Tensor, transl: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The corrected poses (T, 24, 3) and translations (T, 3), in the dtype of the given ones, detached."""
-        return (
-            (body_pose.float() + self.pose.detach()).to(body_pose.dtype),
-            (transl.float() + self.transl.detach()).to(transl.dtype),
-        )
+        with torch.no_grad():
+            return (body_pose.float() + self.pose).to(body_pose.dtype), (transl.float() + self.transl).to(transl.dtype)
 
 
 def fit_poses_to_masks(
