@@ -431,7 +431,8 @@ class Harness:
             problems.append(f"left after the next command: {leftovers}")
         now = snapshot(workspace)
         reference = self.reference(stage.expected or stage.name)
-        if now == before and reference.after == reference.before and status == 0:
+        written = bool(stage.outputs) and all(_complete(folder / "inputs" / name) for name in stage.outputs)
+        if now == before and reference.after == reference.before and (status == 0 or written):
             outcome.state = "new"  # a stage whose result is its outputs alone (checked below) finished
         elif now == before or _old_but_refreshed(stage, now, before, reference.after):
             outcome.state = "old"
