@@ -164,13 +164,15 @@ class _FixedShape:
         return self.points, self.joints
 
 
+@dataclass
 class _Compared:
     """What one phase of the fit compares: the frames' silhouettes, the body's linearised points and their
     skinning weights (P, 24), and the per-frame pose corrections (None: the given poses are kept)."""
 
-    def __init__(self, data: Silhouettes, shape_near: _LinearisedAnny | _FixedShape, weights: torch.Tensor,
-                 poses: PoseOffsets | None = None) -> None:  # fmt: skip
-        self.data, self.shape_near, self.weights, self.poses = data, shape_near, weights, poses
+    data: Silhouettes
+    shape_near: _LinearisedAnny | _FixedShape
+    weights: torch.Tensor
+    poses: PoseOffsets | None = None
 
 
 def fit_body(
@@ -196,7 +198,7 @@ def fit_body(
     frames = torch.linspace(0, len(video) - 1, min(config.frames, len(video))).round().long().unique()
     if anny_model is not None:
         with torch.no_grad():
-            start_vertices, _ = anny_shape(anny_model, torch.full((len(PHENOTYPES),), 0.5, dtype=torch.float64))
+            start_vertices = anny_shape(anny_model, torch.full((len(PHENOTYPES),), 0.5, dtype=torch.float64))[0].float()
         faces, weights = anny_model.faces.long(), joint_weights(anny_model).float()
         starts = config.starts
     elif template is not None:
@@ -206,7 +208,7 @@ def fit_body(
         raise ValueError("fit_body needs anny_model or template")
 
     def compared(data: Silhouettes, points: int, offsets: PoseOffsets | None = None) -> _Compared:
-        chosen = surface_points(start_vertices.float(), faces, points)
+        chosen = surface_points(start_vertices, faces, points)
         near = _LinearisedAnny(anny_model, chosen) if anny_model is not None else _FixedShape(template, chosen)
         return _Compared(data, near, weights[chosen], offsets)
 
