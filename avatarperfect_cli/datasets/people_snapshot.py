@@ -133,6 +133,7 @@ class VideoDataset:
     pose_file: the pose file read, relative to the dataset root when inside it
     notes:     one line each about a choice the loader made that the user may want to override
                (which of several pose files, which frames a split file covers)
+    filmed:    (T, H, W, 3) uint8 RGB, the frames as filmed (not composited), or None
     """
 
     images: torch.Tensor
@@ -145,6 +146,7 @@ class VideoDataset:
     subject: dict[str, Any] | None
     pose_file: str = "poses.npz"
     notes: tuple[str, ...] = ()
+    filmed: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.frame_ids.shape[0])
@@ -213,6 +215,7 @@ def load_people_snapshot(
 
     out_width, out_height = out_camera.width, out_camera.height
     images = np.empty((len(frame_ids), out_height, out_width, 3), dtype=np.float32)
+    filmed = np.empty((len(frame_ids), out_height, out_width, 3), dtype=np.uint8)
     masks = np.empty((len(frame_ids), out_height, out_width), dtype=bool)
     full_size = (out_width, out_height) == (camera.width, camera.height)
 
@@ -225,10 +228,11 @@ def load_people_snapshot(
         np.multiply(image, np.float32(1 / 255), out=composited, dtype=np.float32)
         np.copyto(composited, np.float32(1), where=~mask[:, :, None])
         if full_size:
-            masks[index] = mask
+            masks[index], filmed[index] = mask, image
         else:
             size = (out_width, out_height)
             images[index] = cv2.resize(composited, size, interpolation=cv2.INTER_AREA)
+            filmed[index] = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
             masks[index] = cv2.resize(mask.astype(np.float32), size, interpolation=cv2.INTER_AREA) >= 0.5
 
     _parallel_map(load_frame, range(len(frame_ids)))
@@ -242,6 +246,7 @@ def load_people_snapshot(
         camera=out_camera,
         frame_ids=torch.from_numpy(frame_ids),
         **described,
+        filmed=torch.from_numpy(filmed),
     )
 
 

@@ -149,20 +149,22 @@ def boundary_band(mask: torch.Tensor, width: int) -> torch.Tensor:
 
 def mask_band_supervision(
     image: torch.Tensor, alpha: torch.Tensor, background: torch.Tensor, target: torch.Tensor, frame: torch.Tensor,
-    band: torch.Tensor,
+    backdrop: torch.Tensor | float, band: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The render and target of a video frame whose mask may be a few pixels off at its edge: the silhouette
     is evidence there, not truth.
 
     image: (H, W, 3) render over `background` (3,); alpha: (H, W) its accumulated opacity; target: (H, W, 3)
-    the frame on the mask and `background` elsewhere; frame: (H, W, 3) the frame, composited over
-    DATASET_BACKGROUND; band: (H, W) bool, the mask's `boundary_band`. In the band the render composited
-    over DATASET_BACKGROUND is compared with the frame, so the frame's colours, not the mask, decide whether
-    a pixel is subject or background. Returns the render and the target, (H, W, 3) each.
+    the frame on the mask and `background` elsewhere; frame: (H, W, 3) the frame's colours with `backdrop`
+    behind its subject; backdrop: (H, W, 3), NaN where unknown, or one colour; band: (H, W) bool, the mask's
+    `boundary_band`. In the band the render composited over the backdrop is compared with the frame, so the
+    frame's colours, not the mask, decide whether a pixel is subject or background; where the backdrop is
+    unknown the mask decides, as outside the band. Returns the render and the target, (H, W, 3) each.
     """
-    on_dataset_background = image + (1.0 - alpha[..., None]) * (DATASET_BACKGROUND - background)
-    band = band[..., None]
-    return torch.where(band, on_dataset_background, image), torch.where(band, frame, target)
+    backdrop = torch.as_tensor(backdrop, dtype=image.dtype, device=image.device).expand_as(image)
+    decided = band[..., None] & ~backdrop.isnan().any(dim=-1, keepdim=True)
+    on_backdrop = image + (1.0 - alpha[..., None]) * (backdrop.nan_to_num(0.0) - background)
+    return torch.where(decided, on_backdrop, image), torch.where(decided, frame, target)
 
 
 def subject_bbox(mask: torch.Tensor, margin: int = 20) -> tuple[slice, slice]:

@@ -21,8 +21,11 @@ import torch
 from avatarperfect_cli.avatar.model import Avatar
 from avatarperfect_cli.avatar.rendering import render_avatar
 from avatarperfect_cli.datasets import VideoDataset
+from avatarperfect_cli.datasets.backdrop import estimate_backdrop
 from avatarperfect_cli.render import Camera
-from avatarperfect_cli.training.losses import boundary_band, image_loss, mask_band_supervision, subject_bbox
+from avatarperfect_cli.training.losses import (
+    DATASET_BACKGROUND, boundary_band, image_loss, mask_band_supervision, subject_bbox,
+)  # fmt: skip
 from avatarperfect_cli.training.optim import LearningRates, create_optimizers, set_learning_rates
 from avatarperfect_cli.training.pose_refinement import PoseRefiner
 from avatarperfect_cli.training.progress import TrainingProgress
@@ -40,6 +43,8 @@ class TrainingView:
     loss_mask:  (H, W) bool edit mask M_k, or None to supervise every pixel (video frames)
     draw_weight: relative chance of this edit among the edits when a step draws one
     loss_weight: factor on this edit's loss, on top of `TrainConfig.edit_loss_weight`
+    filmed:     (H, W, 3) uint8 a video frame as filmed, and backdrop: (H, W, 3) float32 what lies behind
+                its subject, NaN where unknown (`mask_band_supervision`); or None: `image` over white
     """
 
     image: torch.Tensor
@@ -50,13 +55,15 @@ class TrainingView:
     loss_mask: torch.Tensor | None = None
     draw_weight: float = 1.0
     loss_weight: float = 1.0
+    filmed: torch.Tensor | None = None
+    backdrop: torch.Tensor | None = None
 
     def to(self, device: torch.device) -> TrainingView:
         """The view with every tensor (the camera's too) on `device`."""
-        loss_mask = None if self.loss_mask is None else self.loss_mask.to(device)
+        loss_mask, filmed, backdrop = (None if t is None else t.to(device) for t in (self.loss_mask, self.filmed, self.backdrop))
         return TrainingView(
             self.image.to(device), self.foreground.to(device), self.body_pose.to(device), self.transl.to(device),
-            self.camera.to(device=device), loss_mask, self.draw_weight, self.loss_weight,
+            self.camera.to(device=device), loss_mask, self.draw_weight, self.loss_weight, filmed, backdrop,
         )  # fmt: skip
 
 
@@ -89,11 +96,17 @@ class TrainConfig:
 
 
 def video_views(video: VideoDataset) -> list[TrainingView]:
-    """One TrainingView per frame of a loaded video (no loss mask: every pixel supervises)."""
-    return [
+    """One TrainingView per frame of a loaded video (no loss mask: every pixel supervises). With the frames
+    as filmed, each view carries its frame and the video's backdrop (`estimate_backdrop`) for the mask band."""
+    views = [
         TrainingView(video.images[t], video.masks[t], video.body_pose[t], video.transl[t], video.camera)
         for t in range(len(video))
     ]
+    if video.filmed is not None and len(video):
+        backdrop = estimate_backdrop(video.filmed, video.masks)
+        for view, filmed in zip(views, video.filmed):
+            view.filmed, view.backdrop = filmed, backdrop
+    return views
 
 
 def background_alpha(alpha: torch.Tensor, loss_mask: torch.Tensor, foreground: torch.Tensor) -> torch.Tensor:
@@ -176,8 +189,10 @@ def train(
             mask = None if view.loss_mask is None else view.loss_mask[rows, cols]
             image = out.image[rows, cols]
             if mask is None and bands:
-                frame, band = view.image[rows, cols], bands[index][rows, cols]
-                image, target = mask_band_supervision(image, out.alpha[rows, cols], background, target, frame, band)
+                frame = view.image[rows, cols] if view.filmed is None else view.filmed[rows, cols].float() / 255
+                backdrop = DATASET_BACKGROUND if view.backdrop is None else view.backdrop[rows, cols]
+                band = bands[index][rows, cols]
+                image, target = mask_band_supervision(image, out.alpha[rows, cols], background, target, frame, backdrop, band)
             loss = image_loss(image, target, mask, config.ssim_weight)
             if mask is not None and config.background_alpha_weight:
                 loss = loss + config.background_alpha_weight * background_alpha(out.alpha[rows, cols], mask, view.foreground[rows, cols])
@@ -188,8 +203,8 @@ def train(
                 if name not in frozen:
                     optimizer.step()
                 optimizer.zero_grad(set_to_none=True)
-            if pose_refiner is not None:
-                pose_refiner.step(step)
+            if pose_refiner is not None and mask is None:
+                pose_refiner.step(index, step)
             strategy.step_post_backward(avatar.params, optimizers, state, step, out)
             bar.update(loss=loss.detach(), image=out.image[rows, cols].detach(), target=target, count=len(avatar))
     return avatar

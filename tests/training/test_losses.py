@@ -172,14 +172,51 @@ def test_mask_band_supervision_lets_the_frame_decide_at_the_edge_of_a_dilated_ma
     dilated = square_mask(size, 6, 18)
     target = torch.where(dilated[..., None], frame, background)
     assert image_loss(render, target) > 0.01
-    image, band_target = mask_band_supervision(render, alpha, background, target, frame, boundary_band(dilated, 2))
+    image, band_target = mask_band_supervision(render, alpha, background, target, frame, 1.0, boundary_band(dilated, 2))
     assert image_loss(image, band_target) < 1e-6
     # with the exact mask the band changes nothing where the render is right
     exact_target = torch.where(subject[..., None], frame, background)
-    image, band_target = mask_band_supervision(render, alpha, background, exact_target, frame, boundary_band(subject, 2))
+    image, band_target = mask_band_supervision(render, alpha, background, exact_target, frame, 1.0, boundary_band(subject, 2))
     assert image_loss(image, band_target) < 1e-6
     # a render that leaves the subject's edge transparent, or spills past it, costs in the band
     for wrong_alpha in (square_mask(size, 10, 14).float(), square_mask(size, 6, 18).float()):
         wrong = torch.where(wrong_alpha[..., None] > 0, colour, background)
-        image, band_target = mask_band_supervision(wrong, wrong_alpha, background, exact_target, frame, boundary_band(subject, 2))
+        image, band_target = mask_band_supervision(wrong, wrong_alpha, background, exact_target, frame, 1.0, boundary_band(subject, 2))
         assert image_loss(image, band_target) > 0.01
+
+
+def test_mask_band_supervision_over_a_filmed_backdrop_recovers_an_eroded_and_a_dilated_mask() -> None:
+    # The subject is the square 8..16 filmed in front of a room (random colours); the frame is as filmed.
+    # Against masks eroded or dilated by 2 px, the render of the true square, composited over the room in the
+    # band, matches the frame exactly; a render that follows the eroded mask leaves room pixels where the
+    # frame shows the subject, and costs.
+    size, background = 24, torch.tensor([0.2, 0.5, 0.9])
+    generator = torch.Generator().manual_seed(0)
+    room = torch.rand(size, size, 3, generator=generator)
+    subject = square_mask(size, 8, 16)
+    colour = torch.tensor([0.7, 0.1, 0.3])
+    filmed = torch.where(subject[..., None], colour, room)
+    render = torch.where(subject[..., None], colour, background)
+    for wrong_mask in (square_mask(size, 10, 14), square_mask(size, 6, 18)):
+        target = torch.where(wrong_mask[..., None], filmed, background)
+        image, band_target = mask_band_supervision(render, subject.float(), background, target, filmed, room, boundary_band(wrong_mask, 2))
+        assert image_loss(image, band_target) < 1e-6
+    eroded = square_mask(size, 10, 14)
+    thin = torch.where(eroded[..., None], colour, background)
+    target = torch.where(eroded[..., None], filmed, background)
+    image, band_target = mask_band_supervision(thin, eroded.float(), background, target, filmed, room, boundary_band(eroded, 2))
+    assert image_loss(image, band_target) > 0.01
+
+
+def test_where_the_backdrop_is_unknown_the_mask_decides_in_the_band() -> None:
+    size, background = 24, torch.tensor([0.2, 0.5, 0.9])
+    subject = square_mask(size, 8, 16)
+    frame = torch.where(subject[..., None], torch.tensor([0.7, 0.1, 0.3]), 0.5)
+    target = torch.where(subject[..., None], frame, background)
+    render, alpha = torch.rand(size, size, 3), torch.rand(size, size)
+    backdrop = torch.full((size, size, 3), 0.5)
+    backdrop[:, :12] = float("nan")  # the left half unknown
+    image, band_target = mask_band_supervision(render, alpha, background, target, frame, backdrop, boundary_band(subject, 2))
+    assert torch.equal(image[:, :12], render[:, :12]) and torch.equal(band_target[:, :12], target[:, :12])
+    band = boundary_band(subject, 2)[:, 12:]
+    assert not torch.equal(image[:, 12:][band], render[:, 12:][band])
