@@ -34,3 +34,22 @@ def test_offsets_are_unused_before_the_start_step():
     pose, transl = torch.zeros(24, 3), torch.zeros(3)
     assert torch.equal(refiner.pose(1, pose, transl, step=9)[0], pose)
     assert torch.equal(refiner.pose(1, pose, transl, step=10)[0], torch.ones(24, 3))
+
+
+def test_a_step_moves_only_the_drawn_frame_as_adam_on_that_frame_alone():
+    refiner = PoseRefiner(3, PoseRefinementConfig(learning_rate=0.01, start_step=0))
+    reference = torch.zeros(24 * 3 + 3, requires_grad=True)
+    adam = torch.optim.Adam([reference], lr=0.01, eps=1e-8)
+    generator = torch.Generator().manual_seed(0)
+    for _ in range(5):
+        weights = torch.randn(24 * 3 + 3, generator=generator)
+        pose, transl = refiner.pose(1, torch.zeros(24, 3), torch.zeros(3), step=0)
+        (torch.cat([pose.flatten(), transl]) * weights).sum().backward()
+        refiner.step(1, step=0)
+        adam.zero_grad()
+        (reference * weights).sum().backward()
+        adam.step()
+    moved = torch.cat([refiner.pose_offsets[1].detach().flatten(), refiner.transl_offsets[1].detach()])
+    torch.testing.assert_close(moved, reference.detach(), rtol=1e-5, atol=1e-7)
+    assert not refiner.pose_offsets[[0, 2]].any() and not refiner.transl_offsets[[0, 2]].any()
+    assert refiner.pose_offsets.grad is None
