@@ -234,15 +234,15 @@ def run_condition(name: str, initial: Path, out: Path, sample: Path, subject: Sy
     }
 
 
-def noisy_training_video(sample: Path, degrees: float) -> Path:
-    """SAMPLE/train-noisy: the training video with estimated poses (`with_estimation_noise`, seed 0)."""
-    noisy = sample / "train-noisy"
+def noisy_video(sample: Path, degrees: float, split: str = "train") -> Path:
+    """SAMPLE/<split>-noisy: the split's video with estimated poses (`with_estimation_noise`, seed 0)."""
+    noisy = sample / f"{split}-noisy"
     if not (noisy / "poses.npz").is_file():
-        video = load_people_snapshot(sample / "train")
+        video = load_people_snapshot(sample / split)
         motion = with_estimation_noise(Motion(video.body_pose.double().numpy(), video.transl.double().numpy()), degrees)
         images = (video.images * 255.0).round().to(torch.uint8).numpy()  # the PNGs' own bytes
         write_people_snapshot(noisy, images, video.masks.numpy(), motion.body_pose, motion.transl, video.camera,
-                              subject=json.loads((sample / "train" / "subject.json").read_text()))  # fmt: skip
+                              subject=json.loads((sample / split / "subject.json").read_text()))  # fmt: skip
     return noisy
 
 
@@ -252,7 +252,7 @@ def run_subject(preset: str, out: Path, rounds: int, resolution: int, iterations
     sample = out / "sample"
     if not (sample / "test" / "subject.json").is_file():
         make_sample(sample, preset, resolution)
-    training = noisy_training_video(sample, pose_noise) if pose_noise > 0 else sample / "train"
+    training = noisy_video(sample, pose_noise) if pose_noise > 0 else sample / "train"
     out = out / f"seed-{seed}"
     out.mkdir(parents=True, exist_ok=True)
     initial = out / "initial-ws"

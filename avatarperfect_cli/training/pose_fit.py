@@ -156,8 +156,8 @@ class ImagePoseConfig:
     prior:      loss of the offsets, mean of (joint offset / 0.1 rad)² and (translation offset / 5 cm)²
     """
 
-    resolution: int = 256
-    steps: int = 40
+    resolution: int = 1024
+    steps: int = 80
     pose_rate: float = 0.005
     transl_rate: float = 0.005
     mask_weight: float = 1.0

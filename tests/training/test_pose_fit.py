@@ -67,7 +67,7 @@ def test_poses_moved_off_the_images_are_put_back() -> None:
     pose_noise[:, 0] = torch.randn(len(video), 3, generator=generator) * torch.deg2rad(torch.tensor(4.0))
     transl_noise = torch.nn.functional.normalize(torch.randn(len(video), 3, generator=generator), dim=1) * 0.03
     moved = VideoDataset(**{**vars(video), "body_pose": video.body_pose + pose_noise, "transl": video.transl + transl_noise})
-    fit = fit_poses_to_images(avatar, moved, ImagePoseConfig(resolution=128))
+    fit = fit_poses_to_images(avatar, moved, ImagePoseConfig(resolution=128, steps=40))
     truth = _posed_joints(template, video.body_pose, video.transl)
     before = (_posed_joints(template, moved.body_pose, moved.transl) - truth).norm(dim=-1).mean()
     after = (_posed_joints(template, fit.body_pose, fit.transl) - truth).norm(dim=-1).mean()
