@@ -58,9 +58,14 @@ class TrainingView:
     filmed: torch.Tensor | None = None
     backdrop: torch.Tensor | None = None
 
-    def to(self, device: torch.device) -> TrainingView:
-        """The view with every tensor (the camera's too) on `device`."""
-        loss_mask, filmed, backdrop = (None if t is None else t.to(device) for t in (self.loss_mask, self.filmed, self.backdrop))
+    def to(self, device: torch.device, moved: dict[int, torch.Tensor] | None = None) -> TrainingView:
+        """The view with every tensor (the camera's too) on `device`. moved: the backdrops already on `device`,
+        by the id of the original, filled as it goes: a backdrop every frame shares is copied once."""
+        moved = {} if moved is None else moved
+        if self.backdrop is not None and id(self.backdrop) not in moved:
+            moved[id(self.backdrop)] = self.backdrop.to(device)
+        backdrop = None if self.backdrop is None else moved[id(self.backdrop)]
+        loss_mask, filmed = (None if t is None else t.to(device) for t in (self.loss_mask, self.filmed))
         return TrainingView(
             self.image.to(device), self.foreground.to(device), self.body_pose.to(device), self.transl.to(device),
             self.camera.to(device=device), loss_mask, self.draw_weight, self.loss_weight, filmed, backdrop,
@@ -148,8 +153,9 @@ def train(
     if not video:
         raise ValueError("training needs at least one video frame")
     device = avatar.device
-    video = [view.to(device) for view in video]
-    edits = [view.to(device) for view in edits]
+    moved_backdrops: dict[int, torch.Tensor] = {}
+    video = [view.to(device, moved_backdrops) for view in video]
+    edits = [view.to(device, moved_backdrops) for view in edits]
     torch.manual_seed(config.seed)
     chooser = random.Random(config.seed)
     rates = config.learning_rates

@@ -281,3 +281,16 @@ def test_the_mask_band_keeps_a_dilated_masks_ring_empty():
         with torch.no_grad():
             alphas.append(float(render_avatar(avatar, yaw(0.0), torch.zeros(3), camera(), torch.ones(3)).alpha[ring].mean()))
     assert alphas[1] < 0.5 * alphas[0], alphas
+
+
+def test_a_backdrop_every_view_shares_is_moved_once():
+    """Moving the views to a device copies the video's shared backdrop once, not once per frame."""
+    backdrop = torch.rand(SIZE, SIZE, 3)
+    views = [replace(view, backdrop=backdrop) for view in video_of(coloured_avatar(), frames=3)]
+    views.append(replace(views[0], backdrop=torch.rand(SIZE, SIZE, 3)))  # another video's backdrop
+    moved: dict[int, torch.Tensor] = {}
+    on_meta = [view.to(torch.device("meta"), moved) for view in views]
+    assert all(view.backdrop.device.type == "meta" for view in on_meta)
+    assert on_meta[0].backdrop is on_meta[1].backdrop is on_meta[2].backdrop
+    assert on_meta[3].backdrop is not on_meta[0].backdrop
+    assert len(moved) == 2
