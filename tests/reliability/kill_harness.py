@@ -102,7 +102,8 @@ class Stage:
     one starts from (None: no workspace yet); expected: the stage whose finished workspace is this one's new
     state (None: its own reference run; then the files that run left alone must stay byte-identical);
     refreshes: folders of derived data (e.g. "visibility") that the stage brings up to date, each in a commit of
-    its own, before its result: the old workspace with any of them as the reference left it also counts as old;
+    its own, before its result: the old workspace with any of them holding the reference's files (names; the
+    contents free) also counts as old;
     outputs: the files the stage writes outside the workspace (relative to `inputs`): after a kill each is absent
     or complete, and only SIGKILL may leave a hidden temporary beside them; steps: the folders a command running
     several stages (loop) completes one after another before its result: a kill may leave each as before or with
@@ -526,7 +527,9 @@ def _complete(path: Path) -> bool:
 
 
 def _old_but_refreshed(stage: Stage, now: dict[str, str], before: dict[str, str], expected: dict[str, str]) -> bool:
-    """Whether `now` is the old state but for some of the stage's refreshed folders, each holding the reference's files."""
+    """Whether `now` is the old state but for some of the stage's refreshed folders, each as before or holding the
+    reference's file names (their contents are a recomputation, whose last bits follow the threads' timing when
+    the cores are shared)."""
     if not stage.refreshes or now == expected:  # a stage whose result is its refreshed folders finished
         return False
 
@@ -536,7 +539,10 @@ def _old_but_refreshed(stage: Stage, now: dict[str, str], before: dict[str, str]
 
     if part(now, None) != part(before, None):
         return False
-    return all(part(now, folder) in (part(before, folder), part(expected, folder)) for folder in stage.refreshes)
+    return all(
+        part(now, folder) == part(before, folder) or set(part(now, folder)) == set(part(expected, folder))
+        for folder in stage.refreshes
+    )
 
 
 def _folder_of(path: str, folders: tuple[str, ...]) -> str | None:
