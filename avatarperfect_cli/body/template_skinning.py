@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from avatarperfect_cli.body.base import BodyTemplate
-from avatarperfect_cli.body.skeleton import blend_transforms, matrix_to_quaternion, skin_gaussians, skin_points
+from avatarperfect_cli.body.skeleton import matrix_to_quaternion, skin_gaussians, skin_points
 from avatarperfect_cli.rotations import quaternion_to_matrix
 
 K_NEAREST = 8
@@ -67,25 +67,35 @@ def bounded_pull_shares(
 
 
 def reanchored_means(
-    means: torch.Tensor, weights: torch.Tensor, new_weights: torch.Tensor, transforms: torch.Tensor, poses_per_batch: int = 8
+    means: torch.Tensor, weights: torch.Tensor, new_weights: torch.Tensor, transforms: torch.Tensor, points_per_batch: int = 32768
 ) -> torch.Tensor:
     """(N, 3) canonical means that, skinned with `new_weights`, land where `means` skinned with `weights` land
     in the poses `transforms`, by least squares over the poses: sum_t |B'_t m' - B_t m|^2, B_t and B'_t the
     blended transforms of the old and new weights in pose t, one 3 x 3 solve per point (float64). Exact
     where the poses differ only by a rigid motion of the whole body (a turntable).
 
+    The normal equations need the poses only through their sums over t of R_tk^T R_tj and R_tk^T t_tj for
+    every pair of joints (R, t: a joint transform's rotation and translation), so the cost does not grow
+    with the number of poses.
     means: (N, 3) canonical, metres; weights, new_weights: (N, 24), rows summing to 1; transforms:
     (T, 24, 4, 4) the poses' joint transforms (`forward_kinematics`)."""
     with torch.no_grad():
-        means64, weights64, new_weights64 = means.double(), weights.double(), new_weights.double()
-        normal, rhs = means64.new_zeros(len(means), 3, 3), means64.new_zeros(len(means), 3)
-        for batch in transforms.double().split(poses_per_batch):
-            posed = skin_points(means64, weights64, batch)  # (B, N, 3)
-            blended = blend_transforms(new_weights64, batch)
-            linear = blended[..., :3]
-            normal += (linear.mT @ linear).sum(dim=0)
-            rhs += (linear.mT @ (posed - blended[..., 3])[..., None])[..., 0].sum(dim=0)
-        return torch.linalg.solve(normal, rhs).to(means.dtype)
+        linear, offset = transforms.double()[..., :3, :3], transforms.double()[..., :3, 3]
+        joints = linear.shape[1]
+        turn_pairs = torch.einsum("tkba,tjbc->kjac", linear, linear).reshape(joints, joints * 9)
+        shift_pairs = torch.einsum("tkba,tjb->kja", linear, offset).reshape(joints, joints * 3)
+        solved = []
+        for chunk_means, chunk_weights, chunk_new in zip(
+            means.double().split(points_per_batch), weights.double().split(points_per_batch), new_weights.double().split(points_per_batch)
+        ):
+            # per point and joint j: sum_k w'_k sum_t R_tk^T R_tj (3 x 3) and sum_k w'_k sum_t R_tk^T t_tj (3)
+            turned = (chunk_new @ turn_pairs).reshape(-1, joints, 3, 3)
+            shifted = (chunk_new @ shift_pairs).reshape(-1, joints, 3)
+            normal = torch.einsum("nj,njab->nab", chunk_new, turned)
+            posed_turn = torch.einsum("nj,njab->nab", chunk_weights, turned)
+            rhs = (posed_turn @ chunk_means[:, :, None])[..., 0] + torch.einsum("nj,nja->na", chunk_weights - chunk_new, shifted)
+            solved.append(torch.linalg.solve(normal, rhs))
+        return torch.cat(solved).to(means.dtype)
 
 
 def reanchored_quats(
@@ -114,15 +124,26 @@ def reanchored_quats(
 
 def largest_shift(
     means: torch.Tensor, weights: torch.Tensor, new_means: torch.Tensor, new_weights: torch.Tensor, transforms: torch.Tensor,
-    poses_per_batch: int = 8,
+    poses_per_batch: int = 32,
 ) -> torch.Tensor:
     """(N,) metres: each point's largest distance over the poses `transforms` between `means` skinned with
-    `weights` and `new_means` skinned with `new_weights` (float64 inside, `means`' dtype out)."""
+    `weights` and `new_means` skinned with `new_weights` (float64 inside, `means`' dtype out). The
+    difference is one skinning of the per-joint vectors (w'_j m' - w_j m, w'_j - w_j): one product for a
+    batch of poses."""
     with torch.no_grad():
+        joints = weights.shape[1]
+        moved_by_joint = torch.cat(
+            [
+                new_weights.double()[..., None] * new_means.double()[:, None] - weights.double()[..., None] * means.double()[:, None],
+                (new_weights.double() - weights.double())[..., None],
+            ],
+            dim=-1,
+        ).reshape(len(means), joints * 4)
         shift = means.new_zeros(len(means), dtype=torch.float64)
         for batch in transforms.double().split(poses_per_batch):
-            moved = skin_points(new_means.double(), new_weights.double(), batch) - skin_points(means.double(), weights.double(), batch)
-            shift = torch.maximum(shift, moved.norm(dim=-1).amax(dim=0))
+            blocks = batch[..., :3, :].permute(1, 3, 0, 2).reshape(joints * 4, -1)  # (joint, column) x (pose, row)
+            moved = (moved_by_joint @ blocks).reshape(len(means), -1, 3)
+            shift = torch.maximum(shift, moved.norm(dim=-1).amax(dim=1))
         return shift.to(means.dtype)
 
 

@@ -146,7 +146,7 @@ def test_reanchoring_keeps_every_point_and_orientation_where_a_turntable_showed_
     means, quats, weights, new_weights = random_gaussians(300, seed=8)
     body_pose = (torch.rand(24, 3, generator=torch.Generator().manual_seed(9), dtype=torch.float64) - 0.5) * 1.2
     poses = rigidly_moved(body_pose, 7, seed=10)
-    new_means = reanchored_means(means, weights, new_weights, poses, poses_per_batch=3)
+    new_means = reanchored_means(means, weights, new_weights, poses, points_per_batch=64)
     new_quats = reanchored_quats(means, quats, weights, new_weights, poses, poses=4)
     shift = largest_shift(means, weights, new_means, new_weights, poses)
     assert (new_means - means).norm(dim=1).median() > 0.01  # the weights differ: the canonical means must move
@@ -175,7 +175,7 @@ def test_reanchored_means_are_the_least_squares_fit_over_poses_that_bend():
     the largest distance over the poses, by brute force."""
     means, _, weights, new_weights = random_gaussians(200, seed=13)
     poses = random_poses(9, seed=14)
-    new_means = reanchored_means(means, weights, new_weights, poses, poses_per_batch=4)
+    new_means = reanchored_means(means, weights, new_weights, poses, points_per_batch=50)
     shift = largest_shift(means, weights, new_means, new_weights, poses, poses_per_batch=2)
     target = skin_points(means, weights, poses)
     fitted = new_means.clone().requires_grad_(True)
