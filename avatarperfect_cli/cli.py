@@ -512,6 +512,13 @@ def simulate_user(
     priority: str = typer.Option(
         "error", help="Which wrong regions first: error (most summed difference) or area (most pixels)."
     ),
+    outline_tolerance: float = typer.Option(
+        0.006, help="Largest displacement overlooked, as a share of the image height (0: judge pixel by pixel)."
+    ),
+    truth_pose: str = typer.Option(
+        "avatar", help="The truth compared with: avatar (the subject where the avatar's skeleton stands) or "
+        "suggested (the subject in the suggested joint angles on its own skeleton).",
+    ),  # fmt: skip
     output: Optional[Path] = typer.Option(
         None, "--output", "-o", help="The painted .png outside the workspace; its statistics go beside it (same name, "
         ".json). These two files are what the command writes [default: the suggestion's simulated_edit.png and .json].",
@@ -522,7 +529,8 @@ def simulate_user(
     from avatarperfect_cli.sample.simulated_user import UserConfig
     from avatarperfect_cli.stages.simulate_user import simulate_user as run
 
-    run(workspace, subject, UserConfig(style=style, budget=budget, priority=priority), output, force=force)
+    config = UserConfig(style=style, budget=budget, priority=priority, outline_tolerance=outline_tolerance, truth_pose=truth_pose)
+    run(workspace, subject, config, output, force=force)
 
 
 @app.command("report")

@@ -82,7 +82,9 @@ def main() -> None:
     pose = read_pose(folder / "pose.json")
     suggested = read_image(folder / "suggested.png", "RGB")
     alpha = read_image(folder / "suggested_alpha.png", "L")[..., 0]
-    result = paint(suggested, alpha, subject.render(pose.body_pose, pose.transl, pose.camera), UserConfig())
+    # the sample's own body: the suggested pose is the one the user pictures; judged pixel by pixel, as the
+    # figures of docs/refine.md were
+    result = paint(suggested, alpha, subject.render(pose.body_pose, pose.transl, pose.camera), UserConfig(outline_tolerance=0.0))
     initial_train = training_psnr(Avatar.load(open_workspace(base).require_avatar()), base)
     rows: list[tuple[str, ...]] = []
     args.images.mkdir(parents=True, exist_ok=True)
@@ -115,7 +117,7 @@ def main() -> None:
         pose = read_pose(folder / "pose.json")
         suggested = read_image(folder / "suggested.png", "RGB")
         alpha = read_image(folder / "suggested_alpha.png", "L")[..., 0]
-        strokes = paint(suggested, alpha, subject.render(pose.body_pose, pose.transl, pose.camera), UserConfig(budget=1.0))
+        strokes = paint(suggested, alpha, subject.render(pose.body_pose, pose.transl, pose.camera), UserConfig(budget=1.0, outline_tolerance=0.0))
         region = (strokes.image >= 0.99).all(dim=-1) & (strokes.stroke_weight >= 0.5) & (alpha > 0.05)
         if int(region.sum()) >= MIN_STROKE:
             source = f"white strokes, suggestion seed {seed}"

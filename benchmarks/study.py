@@ -42,7 +42,7 @@ import shutil
 import statistics
 import time
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -56,7 +56,7 @@ from avatarperfect_cli.refinement.suggest import SuggestConfig
 from avatarperfect_cli.render.camera import rotation_about
 from avatarperfect_cli.sample.generate import make_sample
 from avatarperfect_cli.sample.motions import Motion, with_estimation_noise
-from avatarperfect_cli.sample.simulated_user import UserConfig, paint
+from avatarperfect_cli.sample.simulated_user import TRUTH_POSES, UserConfig, paint, pictured_truth
 from avatarperfect_cli.sample.subject import SyntheticSubject
 from avatarperfect_cli.sample.texture import HIDDEN_REGIONS, REGION
 from avatarperfect_cli.stages.apply_edit import apply_edit, erase_region
@@ -155,7 +155,7 @@ def training_psnr(avatar: Avatar, train: HeldOut, offset: torch.Tensor) -> float
         )
 
 
-def worst_orbit_region(ws: Path, subject: SyntheticSubject, scratch: Path) -> tuple[Path, Path]:
+def worst_orbit_region(ws: Path, subject: SyntheticSubject, scratch: Path, user: UserConfig) -> tuple[Path, Path]:
     """SuperSplat's condition: the canonical pose seen from the worst of ORBIT_VIEWS horizontal orbit views
     (the most pixels the simulated user would paint background); returns (pose.json, region.png) with the
     region the simulated user paints background in that view."""
@@ -177,8 +177,8 @@ def worst_orbit_region(ws: Path, subject: SyntheticSubject, scratch: Path) -> tu
         with torch.no_grad():
             out = render_avatar(avatar, pose.body_pose, pose.transl, pose.camera, WHITE)
         image = torch.round(out.image.clamp(0, 1) * 255) / 255
-        truth = subject.render(pose.body_pose, pose.transl - transl_offset(workspace), pose.camera)
-        result = paint(image, out.alpha, truth, UserConfig())
+        truth = pictured_truth(subject, pose, avatar.rest_joints, transl_offset(workspace), user.truth_pose)
+        result = paint(image, out.alpha, truth, user)
         region = (result.stroke_weight >= 0.5) & (result.image >= 0.99).all(dim=-1) & (image < 0.99).any(dim=-1)
         if best is None or int(region.sum()) > best[0]:
             best = (int(region.sum()), pose, region)
@@ -189,7 +189,7 @@ def worst_orbit_region(ws: Path, subject: SyntheticSubject, scratch: Path) -> tu
 
 
 def run_condition(name: str, initial: Path, out: Path, sample: Path, subject: SyntheticSubject, train: HeldOut,
-                  rounds: int, base_train_psnr: float, seed: int) -> dict:  # fmt: skip
+                  rounds: int, base_train_psnr: float, seed: int, user: UserConfig) -> dict:  # fmt: skip
     ws = out / name
     shutil.rmtree(ws, ignore_errors=True)
     shutil.copytree(initial, ws)
@@ -208,14 +208,14 @@ def run_condition(name: str, initial: Path, out: Path, sample: Path, subject: Sy
             search = SuggestConfig(body_pose=mode, exposure_poses=exposure_poses, seed=round_seed)
             suggest(ws, SuggestSettings(search), progress=False)
             user_start = time.perf_counter()
-            painting = simulate_user(ws, sample, UserConfig(style=style), output=scratch / "painted.png", progress=False, force=True)
+            painting = simulate_user(ws, sample, replace(user, style=style), output=scratch / "painted.png", progress=False, force=True)
             if painting.stats.painted_pixels:  # nothing wrong in view: no edit, the round's refine still runs (the paper, §8)
                 apply_edit(ws, scratch / "painted.png", progress=False)
             user_seconds = time.perf_counter() - user_start
             refine(ws, RefineSettings(seed=round_seed, keep_shapes=keep_shapes), progress=False)
         else:
             user_start = time.perf_counter()
-            pose, region = worst_orbit_region(ws, subject, scratch)
+            pose, region = worst_orbit_region(ws, subject, scratch, user)
             user_seconds = time.perf_counter() - user_start
             if read_image(region, "L").max() < 0.5:
                 round_seconds.append(time.perf_counter() - start - user_seconds)
@@ -247,7 +247,8 @@ def noisy_video(sample: Path, degrees: float, split: str = "train") -> Path:
 
 
 def run_subject(preset: str, out: Path, rounds: int, resolution: int, iterations: int, conditions: Sequence[str],
-                seed: int, images: Path | None, body: str = "fit", pose_noise: float = 0.0) -> dict:  # fmt: skip
+                seed: int, images: Path | None, body: str = "fit", pose_noise: float = 0.0,
+                user: UserConfig | None = None) -> dict:  # fmt: skip
     """Every condition on the initial avatar of `seed`; writes the held-out picture to `images` (None: none)."""
     sample = out / "sample"
     if not (sample / "test" / "subject.json").is_file():
@@ -270,7 +271,7 @@ def run_subject(preset: str, out: Path, rounds: int, resolution: int, iterations
     base_train_psnr = training_psnr(Avatar.load(open_workspace(initial).require_avatar()), train, offset)
     results, pictures = {}, {}
     for name in conditions:
-        info = run_condition(name, initial, out, sample, subject, train, rounds, base_train_psnr, seed)
+        info = run_condition(name, initial, out, sample, subject, train, rounds, base_train_psnr, seed, user or UserConfig())
         mean, shown = score(Avatar.load(open_workspace(info.pop("workspace")).require_avatar()), data, offset)
         results[name] = {**mean, **info}
         pictures[name] = shown
@@ -347,7 +348,12 @@ def main() -> None:
     parser.add_argument("--pose-noise", type=float, default=0.0, metavar="DEG",
                         help="train on poses perturbed as a pose estimator's: DEG per joint axis, DEG/2 on the root, "
                              "DEG/2 cm on the translation; train-initial refines them (--refine-poses)")  # fmt: skip
+    parser.add_argument("--user-outline-tolerance", type=float, default=UserConfig.outline_tolerance, metavar="SHARE",
+                        help="the simulated user's outline tolerance (share of the image height; 0: pixel by pixel)")
+    parser.add_argument("--user-truth-pose", choices=TRUTH_POSES, default=UserConfig.truth_pose,
+                        help="the truth the simulated user compares with (simulate-user --truth-pose)")
     args = parser.parse_args()
+    user = UserConfig(outline_tolerance=args.user_outline_tolerance, truth_pose=args.user_truth_pose)
     if "initial" not in args.conditions:
         args.conditions.insert(0, "initial")  # the gains are measured from it
     start = time.perf_counter()
@@ -358,7 +364,7 @@ def main() -> None:
             print(f"subject {preset}, seed {seed}", flush=True)
             images = args.out / "images" if seed == args.seeds[0] else None
             all_results[preset][seed] = run_subject(preset, args.out / preset, args.rounds, args.resolution, args.iterations,
-                                                    args.conditions, seed, images, args.body, args.pose_noise)  # fmt: skip
+                                                    args.conditions, seed, images, args.body, args.pose_noise, user)  # fmt: skip
             (args.out / "study.json").write_text(json.dumps(all_results, indent=2))
     per_subject = {preset: combine(list(all_results[preset].values()), args.conditions) for preset in args.presets}
     mean = combine(list(per_subject.values()), args.conditions)

@@ -9,7 +9,9 @@ from typing import Any
 import torch
 
 from avatarperfect_cli.body.base import NUM_JOINTS, SMPL_JOINT_NAMES, SMPL_PARENTS, BodyTemplate
-from avatarperfect_cli.body.skeleton import blend_transforms, forward_kinematics, matrix_to_quaternion, skin_gaussians, skin_points
+from avatarperfect_cli.body.skeleton import (
+    blend_transforms, forward_kinematics, matrix_to_quaternion, posed_joints, skin_gaussians, skin_points,
+)  # fmt: skip
 from avatarperfect_cli.errors import AvatarPerfectError
 from avatarperfect_cli.rotations import axis_angle_to_matrix, quaternion_to_matrix
 
@@ -75,6 +77,7 @@ __all__ = [
     "load_body_template",
     "load_described_template",
     "matrix_to_quaternion",
+    "posed_joints",
     "quaternion_to_matrix",
     "skin_gaussians",
     "skin_points",

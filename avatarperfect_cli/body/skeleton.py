@@ -400,6 +400,12 @@ def forward_kinematics(body_pose: torch.Tensor, rest_joints: torch.Tensor, trans
     return torch.cat([top, bottom], dim=-2)
 
 
+def posed_joints(transforms: torch.Tensor, rest_joints: torch.Tensor) -> torch.Tensor:
+    """(..., 24, 3) world joint positions, metres: `rest_joints` (24, 3) moved by their own transforms
+    (..., 24, 4, 4) from `forward_kinematics`."""
+    return (transforms[..., :3, :3] @ rest_joints[..., None])[..., 0] + transforms[..., :3, 3]
+
+
 def blend_transforms(weights: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
     """Per-point blended affine transforms.
 

@@ -32,6 +32,7 @@ from typing import NamedTuple
 import torch
 
 from avatarperfect_cli.avatar.model import Avatar
+from avatarperfect_cli.body import posed_joints
 from avatarperfect_cli.io.pose_json import PoseFile
 from avatarperfect_cli.refinement.collision import BodyCapsules
 from avatarperfect_cli.refinement.pose_prior import PosePrior
@@ -175,7 +176,7 @@ class OrbitView:
 
     def _body_center(self, transforms: torch.Tensor) -> torch.Tensor:
         """(3,) centre of the bounding box of the joints posed by `transforms` (24, 4, 4), metres."""
-        joints = (transforms[:, :3, :3] @ self.avatar.rest_joints[:, :, None])[..., 0] + transforms[:, :3, 3]
+        joints = posed_joints(transforms, self.avatar.rest_joints)
         return 0.5 * (joints.min(dim=0).values + joints.max(dim=0).values)
 
     def _camera(self, center: torch.Tensor, distance: float, camera: Camera) -> Camera:

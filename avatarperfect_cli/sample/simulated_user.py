@@ -1,7 +1,9 @@
 """A simulated user that paints a suggested image the way a careful person would, from the exact truth.
 
-The person compares the suggested render with the subject's ground truth at the same pose and camera
-and sees three kinds of wrong region:
+The person compares the suggested render with the subject's ground truth in the pose the avatar shows
+(`SyntheticSubject.render_posed_like`: an avatar on a fitted skeleton stands a little differently from
+the subject in the same joint angles, and the person judges the avatar, not its skeleton's fit), with
+the same camera, and sees three kinds of wrong region:
 
 - background: the avatar shows something (alpha > 0.5, or visibly non-white) where the truth is
   background (coverage < 0.5): painted white, so apply-edit deletes it;
@@ -10,7 +12,12 @@ and sees three kinds of wrong region:
 
 A pixel is wrong when the mean absolute difference over the channels exceeds `colour_tolerance` after
 a small Gaussian blur of the difference (the blur hides single-pixel noise, as an eye at normal zoom
-does); its kind follows from the unblurred coverage of truth and avatar. The person paints two things:
+does), and no shift of the truth by up to `outline_tolerance` of the image height explains it. A
+person sees the avatar alone: a limb drawn a few pixels beside where the subject's would be, or a stripe
+a pixel off, looks right, so the difference at a pixel is the smaller of the differences to the truth's
+pixels within that distance, taken both ways (avatar against the truth nearby and truth against the avatar
+nearby, the larger of the two), and what a small displacement explains is never painted. Its kind
+follows from the unblurred coverage of truth and avatar. The person paints two things:
 white (background pixels) and true colours (colour and missing pixels together, so a hole inside a
 miscoloured patch is one stroke). Each of the two masks is opened with a 3x3 square (lines thinner
 than 3 px are seams nobody paints) and grown back by one pixel inside the mask (so corners and tips
@@ -40,9 +47,12 @@ import numpy as np
 import torch
 
 from avatarperfect_cli.errors import AvatarPerfectError
+from avatarperfect_cli.io.pose_json import PoseFile
 from avatarperfect_cli.sample.mesh_raster import MeshRender
+from avatarperfect_cli.sample.subject import SyntheticSubject
 
 STYLES = ("exact", "flat")
+TRUTH_POSES = ("avatar", "suggested")
 PRIORITIES = ("area", "error")
 KINDS = ("background", "colour", "missing")
 _WHITE = np.ones(3, np.float32)
@@ -60,6 +70,11 @@ class UserConfig:
     brush_feather_px:   width of the stroke's soft edge beyond the blob, pixels (0: a hard brush)
     blur_sigma_px:      standard deviation of the Gaussian blur before judging differences, pixels
     priority:           "error" (the blobs with the largest summed difference first) or "area" (most pixels first)
+    outline_tolerance:  largest displacement the person overlooks, as a share of the image height (0.006: 3 px
+                        at 512², 2 px at 256²; 0: every pixel is compared with the same pixel of the truth)
+    truth_pose:         the truth the person pictures (the `simulate-user` stage renders it): "avatar", the subject
+                        with its joints where the avatar's skeleton puts them; "suggested", the subject in the
+                        suggested joint angles on its own skeleton (a fitted skeleton's outlines then differ)
     """
 
     style: str = "exact"
@@ -69,10 +84,14 @@ class UserConfig:
     brush_feather_px: float = 1.0
     blur_sigma_px: float = 1.0
     priority: str = "error"
+    outline_tolerance: float = 0.006
+    truth_pose: str = "avatar"
 
     def __post_init__(self) -> None:
         if self.style not in STYLES:
             raise AvatarPerfectError(f"unknown painting style {self.style!r}; choose one of {', '.join(STYLES)}")
+        if self.truth_pose not in TRUTH_POSES:
+            raise AvatarPerfectError(f"unknown truth pose {self.truth_pose!r}; choose one of {', '.join(TRUTH_POSES)}")
         if self.priority not in PRIORITIES:
             choices = ", ".join(PRIORITIES)
             raise AvatarPerfectError(f"unknown painting priority {self.priority!r}; choose one of {choices}")
@@ -80,8 +99,8 @@ class UserConfig:
             raise AvatarPerfectError(f"the painting budget is a share of the subject in (0, 1], got {self.budget}")
         if self.colour_tolerance <= 0.0 or self.min_region_pixels < 1:
             raise AvatarPerfectError("the colour tolerance must be positive and min_region_pixels at least 1")
-        if self.brush_feather_px < 0.0 or self.blur_sigma_px < 0.0:
-            raise AvatarPerfectError("the brush feather and the blur must not be negative")
+        if self.brush_feather_px < 0.0 or self.blur_sigma_px < 0.0 or not 0.0 <= self.outline_tolerance < 0.5:
+            raise AvatarPerfectError("the brush feather and the blur must not be negative, the outline tolerance in [0, 0.5)")
 
 
 @dataclass
@@ -126,6 +145,17 @@ class _Blob:
     box: tuple[int, int, int, int]  # x, y, width, height
 
 
+def pictured_truth(
+    subject: SyntheticSubject, pose: PoseFile, rest_joints: torch.Tensor, transl_offset: torch.Tensor, truth_pose: str
+) -> MeshRender:
+    """The truth the person compares a suggestion in `pose` (the avatar's pose file) with (`UserConfig.truth_pose`):
+    the subject where the avatar on `rest_joints` (24, 3) stands, or in the suggested joint angles at the pose's
+    translation less `transl_offset` (3,) metres, the workspace's offset."""
+    if truth_pose == "avatar":
+        return subject.render_posed_like(pose.body_pose, pose.transl, rest_joints, pose.camera)
+    return subject.render(pose.body_pose, pose.transl - transl_offset, pose.camera)
+
+
 def paint(
     suggested: torch.Tensor, suggested_alpha: torch.Tensor, truth: MeshRender, config: UserConfig | None = None
 ) -> PaintResult:
@@ -147,7 +177,8 @@ def paint(
     truth_rgb = truth.rgb.astype(np.float32)
     truth_shows = truth.coverage >= 0.5
     avatar_shows = (alpha > 0.5) | (np.abs(image - _WHITE).mean(axis=2) > config.colour_tolerance)
-    difference = _blurred_difference(image, truth_rgb, config.blur_sigma_px)
+    shift = round(config.outline_tolerance * height)
+    difference = _blurred_difference(image, truth_rgb, config.blur_sigma_px, shift)
     wrong = difference > config.colour_tolerance
     kind = np.full((height, width), -1, np.int8)  # index into KINDS of each wrong pixel
     kind[wrong & avatar_shows & ~truth_shows] = KINDS.index("background")
@@ -235,12 +266,31 @@ def _count_kinds(kind: np.ndarray, where: np.ndarray) -> dict[str, int]:
     return {name: int(count) for name, count in zip(KINDS, counts)}
 
 
-def _blurred_difference(image: np.ndarray, reference: np.ndarray, sigma: float) -> np.ndarray:
-    """(H, W) mean over channels of |blur(image - reference)|; image, reference (H, W, 3)."""
-    difference = np.ascontiguousarray(image - reference, dtype=np.float32)
-    if sigma > 0.0:
-        difference = cv2.GaussianBlur(difference, (0, 0), sigmaX=sigma, borderType=cv2.BORDER_REPLICATE)
-    return np.abs(difference).mean(axis=2)
+def _blurred_difference(image: np.ndarray, reference: np.ndarray, sigma: float, shift: int) -> np.ndarray:
+    """(H, W) mean over channels of |blur(image) - blur(reference)|, image and reference (H, W, 3); with
+    `shift` > 0 px, the smallest such difference to the other image's pixels within `shift` px (a disc),
+    taken both ways and the larger of the two kept: what a displacement of up to `shift` px explains."""
+    blurred = []
+    for rgb in (image, reference):
+        rgb = np.ascontiguousarray(rgb, dtype=np.float32)
+        if sigma > 0.0:
+            rgb = cv2.GaussianBlur(rgb, (0, 0), sigmaX=sigma, borderType=cv2.BORDER_REPLICATE)
+        blurred.append(rgb)
+    return np.maximum(_nearest_difference(*blurred, shift), _nearest_difference(*blurred[::-1], shift))
+
+
+def _nearest_difference(image: np.ndarray, reference: np.ndarray, shift: int) -> np.ndarray:
+    """(H, W) for each pixel of `image` (H, W, 3), the smallest mean absolute channel difference to the
+    pixels of `reference` (H, W, 3) within `shift` px of it (the image's edges repeated beyond it)."""
+    height, width = image.shape[:2]
+    padded = cv2.copyMakeBorder(reference, shift, shift, shift, shift, cv2.BORDER_REPLICATE)
+    nearest = np.full((height, width), np.inf, np.float32)
+    for dy in range(-shift, shift + 1):
+        for dx in range(-shift, shift + 1):
+            if dy * dy + dx * dx <= shift * shift:
+                moved = padded[shift + dy : shift + dy + height, shift + dx : shift + dx + width]
+                np.minimum(nearest, cv2.absdiff(image, moved).mean(axis=2), out=nearest)
+    return nearest
 
 
 def _distance_to(mask: np.ndarray) -> np.ndarray:

@@ -17,6 +17,7 @@ import torch
 
 from avatarperfect_cli.body import load_body_template
 from avatarperfect_cli.body.base import BodyTemplate
+from avatarperfect_cli.body.retarget import retarget_pose
 from avatarperfect_cli.body.skeleton import forward_kinematics, skin_points
 from avatarperfect_cli.body.anny_model import full_phenotype
 from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
@@ -79,6 +80,13 @@ class SyntheticSubject:
         used as given (make_sample's stored translations are already grounded)."""
         vertices = skin_template(self.template, torch.as_tensor(body_pose)[None], torch.as_tensor(transl)[None])
         return self.render_vertices(vertices[0].numpy(), camera)
+
+    def render_posed_like(self, body_pose: torch.Tensor, transl: torch.Tensor, rest_joints: torch.Tensor, camera: Camera) -> MeshRender:
+        """The subject in the pose another skeleton shows, on white: its joints where `rest_joints` (24, 3) posed by
+        body_pose (24, 3) and transl (3,) put theirs (`body.retarget`), as a person pictures the subject in the
+        pose an avatar on that skeleton shows, where it stands. With the subject's own skeleton this is `render`."""
+        body_pose, transl = retarget_pose(body_pose, transl, rest_joints, self.template.rest_joints)
+        return self.render(body_pose, transl, camera)
 
     def render_vertices(self, vertices: np.ndarray, camera: Camera) -> MeshRender:
         """The template posed at `vertices` (V, 3) float64 metres, world frame: shaded, textured, 2x2

@@ -1,7 +1,9 @@
 """The `simulate-user` stage: paint the latest suggestion as a careful person would, for synthetic subjects.
 
-The subject's exact appearance in the suggested pose is rendered by the sample module; the simulated
-user (`sample.simulated_user`) paints white over what should be background and the true colours (or
+The subject's exact appearance in the suggested pose is rendered by the sample module, by default with its
+joints where the avatar's skeleton puts them (a fitted skeleton is not the subject's: a person pictures the
+subject in the pose the avatar shows, not a few pixels beside it); the simulated user
+(`sample.simulated_user`) paints white over what should be background and the true colours (or
 each blob's mean colour) over what is wrong, within a budget. The result is an ordinary edited PNG
 for `apply-edit`, written as ws/suggestions/NNN/simulated_edit.png unless another path is given, with its
 statistics beside it (simulated_edit.json). Another path must be a .png outside the workspace; it and its .json are
@@ -16,12 +18,13 @@ from pathlib import Path
 
 from rich.console import Console
 
+from avatarperfect_cli.avatar.model import Avatar
 from avatarperfect_cli.io import atomic_write_text, read_image, read_pose, write_image
 from avatarperfect_cli.errors import InputFileError
 from avatarperfect_cli.io.atomic import updated_folder
 from avatarperfect_cli.io.outputs import check_new_output
 from avatarperfect_cli.io.workspace import locked_workspace
-from avatarperfect_cli.sample.simulated_user import PaintResult, UserConfig, paint
+from avatarperfect_cli.sample.simulated_user import PaintResult, UserConfig, paint, pictured_truth
 from avatarperfect_cli.sample.subject import SyntheticSubject
 from avatarperfect_cli.stages.workspace_data import latest_suggestion, transl_offset
 
@@ -51,8 +54,8 @@ def simulate_user(
         pose = read_pose(folder / "pose.json")
         suggested = read_image(folder / "suggested.png", "RGB")
         alpha = read_image(folder / "suggested_alpha.png", "L")[..., 0]
-        # the avatar's translations carry the workspace's offset; the subject's are its own
-        truth = truth_model.render(pose.body_pose, pose.transl - transl_offset(workspace), pose.camera)
+        rest_joints = Avatar.load(workspace.require_avatar()).rest_joints
+        truth = pictured_truth(truth_model, pose, rest_joints, transl_offset(workspace), config.truth_pose)
         result = paint(suggested, alpha, truth, config)
         path = Path(output) if output is not None else folder / SIMULATED_EDIT
         if output is None:  # inside the workspace: the image and its stats appear together

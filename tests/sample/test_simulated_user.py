@@ -244,10 +244,33 @@ def test_painting_is_deterministic() -> None:
     assert asdict(first.stats) == asdict(second.stats)
 
 
+@pytest.mark.parametrize(("tolerance_px", "outline_painted"), [(0, True), (2, True), (3, False), (5, False)])
+def test_an_outline_a_few_pixels_off_is_overlooked_within_the_tolerance(tolerance_px: int, outline_painted: bool) -> None:
+    """The avatar drawn 3 px right of the truth, stripes and all: within the tolerance nothing of that is
+    painted (a person sees nothing wrong), beyond it the uncovered edge is; the floater, the green patch and
+    the hole are painted either way."""
+    scene = _scene()
+    suggested = torch.roll(scene.suggested, 3, dims=1)
+    alpha = torch.roll(scene.alpha, 3, dims=1)
+    shifted = {name: np.roll(getattr(scene, name), 3, axis=1) for name in ("floater", "patch", "hole", "halo")}
+    height = scene.suggested.shape[0]
+    result = paint(suggested, alpha, scene.truth, UserConfig(budget=1.0, outline_tolerance=tolerance_px / height))
+    weight = result.stroke_weight.numpy()
+    uncovered = _box(slice(20, 60), slice(16, 19))  # the body's left edge the shift leaves white
+    assert (weight[uncovered] == 1.0).all() if outline_painted else (weight[uncovered] == 0.0).all()
+    for name in ("floater", "patch", "hole"):
+        assert (weight[shifted[name]] == 1.0).all()
+    if not outline_painted:
+        near_faults = cv2.dilate((shifted["patch"] | shifted["hole"]).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+        away_from_halo = _box(slice(16, 64), slice(19, 52))  # the halo's blob reaches 3 px into the body, as it should
+        assert (weight[away_from_halo & ~near_faults] == 0.0).all()
+
+
 @pytest.mark.parametrize(
     "config",
-    [{"style": "sketchy"}, {"budget": 0.0}, {"budget": 1.5}, {"brush_feather_px": -1.0}, {"priority": "loudest"}],
-)
+    [{"style": "sketchy"}, {"budget": 0.0}, {"budget": 1.5}, {"brush_feather_px": -1.0}, {"priority": "loudest"},
+     {"outline_tolerance": -0.01}, {"outline_tolerance": 0.5}],
+)  # fmt: skip
 def test_bad_settings_are_one_line_errors(config: dict) -> None:
     with pytest.raises(AvatarPerfectError, match=r"^[^\n]+$"):
         UserConfig(**config)

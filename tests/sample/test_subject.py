@@ -82,6 +82,21 @@ def test_render_follows_the_translation(subject: SyntheticSubject) -> None:
     np.testing.assert_array_equal(still.rgb[background], 1.0)
 
 
+def test_posed_like_another_skeleton_puts_the_subject_where_that_skeleton_stands(subject: SyntheticSubject) -> None:
+    video = load_people_snapshot(SAMPLE / "test")
+    camera, body_pose, transl = video.camera, video.body_pose[3], video.transl[3]
+    rest_joints = subject.template.rest_joints
+    # Its own skeleton: the subject as it is.
+    own = subject.render_posed_like(body_pose, transl, rest_joints, camera)
+    np.testing.assert_allclose(own.rgb, subject.render(body_pose, transl, camera).rgb, atol=1e-6)
+    # A skeleton standing 4 cm further right: the subject there.
+    shift = torch.tensor([0.04, 0.0, 0.0])
+    moved = subject.render_posed_like(body_pose, transl, rest_joints + shift, camera)
+    expected = subject.render(body_pose, transl + shift, camera)
+    assert np.abs(moved.coverage - expected.coverage).max() < 1e-3
+    assert np.abs(moved.coverage - own.coverage).sum() > 100
+
+
 def test_unseen_faces_are_what_no_frame_shows(subject: SyntheticSubject) -> None:
     video = load_people_snapshot(SAMPLE / "train")
     camera = video.camera

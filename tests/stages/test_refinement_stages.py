@@ -455,6 +455,26 @@ def test_simulate_user_paints_an_ordinary_edit(workspace: Path):
     assert invoke("apply-edit", workspace, painted).exit_code == 0
 
 
+def test_simulate_user_pictures_the_subject_where_the_avatars_skeleton_stands(workspace: Path, tmp_path: Path):
+    """An avatar whose skeleton and Gaussians stand 8 cm right of the subject's: the user who pictures the
+    subject there (the default) paints far less than the one comparing with the subject in its own place."""
+    path = open_workspace(workspace).require_avatar()
+    avatar = Avatar.load(path)
+    shift = torch.tensor([0.08, 0.0, 0.0])
+    avatar.rest_joints += shift
+    avatar.params["means"].data += shift
+    avatar.save(path)
+    assert invoke("suggest", workspace, *FAST_SUGGEST).exit_code == 0
+    painted = {}
+    for truth_pose in ("avatar", "suggested"):
+        output = tmp_path / f"{truth_pose}.png"
+        result = invoke("simulate-user", workspace, "--subject", SAMPLE, "--truth-pose", truth_pose, "--budget", "1", "-o", output)
+        assert result.exit_code == 0, result.output
+        stats = json.loads(output.with_suffix(".json").read_text())
+        painted[truth_pose] = sum(stats["wrong_pixels"].values())
+    assert painted["suggested"] > 2 * painted["avatar"], painted
+
+
 def test_simulate_user_refuses_a_real_dataset(workspace: Path, tmp_path: Path):
     assert invoke("suggest", workspace, *FAST_SUGGEST).exit_code == 0
     real = tmp_path / "real"
