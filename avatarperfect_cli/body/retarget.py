@@ -30,21 +30,19 @@ def retarget_pose(
     transl: torch.Tensor,
     rest_joints: torch.Tensor,
     target_rest_joints: torch.Tensor,
-    target_transl: torch.Tensor | None = None,
     config: RetargetConfig | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """(body_pose (24, 3), transl (3,)) float64 of the skeleton `target_rest_joints` (24, 3) whose posed joints
     lie closest (least squares) to those of `rest_joints` (24, 3) posed by body_pose (24, 3) axis-angle and
-    transl (3,) metres. The solve starts from the source's angles and `target_transl` (default: `transl`); a
-    target whose skeleton is the source's, started at the same translation, gets the source's pose back."""
+    transl (3,) metres. The solve starts from the source's angles and translation, so a target whose skeleton is
+    the source's gets the source's pose back."""
     config = config or RetargetConfig()
     body_pose, transl = body_pose.detach().double(), transl.detach().double()
     target_rest_joints = target_rest_joints.detach().double()
     source_rest_joints = rest_joints.detach().double()
     goal = posed_joints(forward_kinematics(body_pose[None], source_rest_joints, transl[None])[0], source_rest_joints)
-    start = transl if target_transl is None else target_transl.detach().double()
     pose = body_pose.clone().requires_grad_(True)
-    position = start.clone().requires_grad_(True)
+    position = transl.clone().requires_grad_(True)
     optimizer = torch.optim.LBFGS(
         [pose, position], max_iter=config.iterations, tolerance_grad=1e-12, tolerance_change=1e-15, line_search_fn="strong_wolfe"
     )
