@@ -14,6 +14,7 @@ elsewhere (CUDA) grouped conv2d and autograd do.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Literal
 
 import cv2
@@ -147,24 +148,45 @@ def boundary_band(mask: torch.Tensor, width: int) -> torch.Tensor:
     return torch.from_numpy(cv2.dilate(pixels, kernel) != cv2.erode(pixels, kernel)).to(mask.device)
 
 
+@dataclass
+class BandPixels:
+    """The pixels of a frame's mask band where the frame's colours decide (`band_pixels`).
+
+    index: (K,) int64 flat indices into the (H, W) image; frame: (K, 3) the frame's colours there;
+    backdrop: (K, 3) what lies behind the subject there.
+    """
+
+    index: torch.Tensor
+    frame: torch.Tensor
+    backdrop: torch.Tensor
+
+
+def band_pixels(band: torch.Tensor, frame: torch.Tensor, backdrop: torch.Tensor | float) -> BandPixels:
+    """The pixels of `band` (H, W) bool, a mask's `boundary_band`, whose backdrop is known, with their colours:
+    frame (H, W, 3) the frame's colours with `backdrop` behind its subject; backdrop (H, W, 3), NaN where
+    unknown, or one colour. A frame's band is fixed, so a trainer gathers it once, not at every step."""
+    backdrop = torch.as_tensor(backdrop, dtype=frame.dtype, device=frame.device).expand_as(frame)
+    index = (band & ~backdrop.isnan().any(dim=-1)).flatten().nonzero()[:, 0]
+    return BandPixels(index, frame.reshape(-1, 3)[index], backdrop.reshape(-1, 3)[index])
+
+
 def mask_band_supervision(
-    image: torch.Tensor, alpha: torch.Tensor, background: torch.Tensor, target: torch.Tensor, frame: torch.Tensor,
-    backdrop: torch.Tensor | float, band: torch.Tensor,
+    image: torch.Tensor, alpha: torch.Tensor, background: torch.Tensor, target: torch.Tensor, band: BandPixels
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The render and target of a video frame whose mask may be a few pixels off at its edge: the silhouette
     is evidence there, not truth.
 
     image: (H, W, 3) render over `background` (3,); alpha: (H, W) its accumulated opacity; target: (H, W, 3)
-    the frame on the mask and `background` elsewhere; frame: (H, W, 3) the frame's colours with `backdrop`
-    behind its subject; backdrop: (H, W, 3), NaN where unknown, or one colour; band: (H, W) bool, the mask's
-    `boundary_band`. In the band the render composited over the backdrop is compared with the frame, so the
-    frame's colours, not the mask, decide whether a pixel is subject or background; where the backdrop is
-    unknown the mask decides, as outside the band. Returns the render and the target, (H, W, 3) each.
+    the frame on the mask and `background` elsewhere; band: the `band_pixels` of the frame's mask. There the
+    render composited over the backdrop is compared with the frame, so the frame's colours, not the mask,
+    decide whether a pixel is subject or background; where the backdrop is unknown the mask decides, as
+    outside the band. Returns the render and the target, (H, W, 3) each.
     """
-    backdrop = torch.as_tensor(backdrop, dtype=image.dtype, device=image.device).expand_as(image)
-    decided = band[..., None] & ~backdrop.isnan().any(dim=-1, keepdim=True)
-    on_backdrop = image + (1.0 - alpha[..., None]) * (backdrop.nan_to_num(0.0) - background)
-    return torch.where(decided, on_backdrop, image), torch.where(decided, frame, target)
+    shape, index = image.shape, band.index
+    pixels = image.reshape(-1, 3)
+    on_backdrop = pixels[index] + (1.0 - alpha.reshape(-1)[index, None]) * (band.backdrop - background)
+    image = pixels.index_put((index,), on_backdrop).reshape(shape)
+    return image, target.reshape(-1, 3).index_put((index,), band.frame).reshape(shape)
 
 
 def subject_bbox(mask: torch.Tensor, margin: int = 20) -> tuple[slice, slice]:

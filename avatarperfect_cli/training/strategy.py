@@ -153,8 +153,10 @@ def bound_scales(log_scales: torch.Tensor, max_scale: float, max_anisotropy: flo
     """Clamp (N, 3) log standard deviations in place: each at most log(max_scale), and the largest at most
     log(max_anisotropy) above the second largest (a bound of 0 is no bound)."""
     if max_anisotropy > 0:
-        second = log_scales.median(dim=-1, keepdim=True).values  # of three: the second largest
-        log_scales.copy_(torch.minimum(log_scales, second + math.log(max_anisotropy)))
+        a, b, c = log_scales.unbind(dim=-1)
+        # the second largest of three, exactly (median's sort costs 20 times more)
+        second = torch.maximum(torch.minimum(a, b), torch.minimum(torch.maximum(a, b), c))
+        log_scales.copy_(torch.minimum(log_scales, (second + math.log(max_anisotropy))[:, None]))
     if max_scale > 0:
         log_scales.clamp_(max=math.log(max_scale))
 

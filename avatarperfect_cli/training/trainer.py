@@ -24,7 +24,7 @@ from avatarperfect_cli.datasets import VideoDataset
 from avatarperfect_cli.datasets.backdrop import estimate_backdrop
 from avatarperfect_cli.render import Camera
 from avatarperfect_cli.training.losses import (
-    DATASET_BACKGROUND, boundary_band, image_loss, mask_band_supervision, subject_bbox,
+    DATASET_BACKGROUND, BandPixels, band_pixels, boundary_band, image_loss, mask_band_supervision, subject_bbox,
 )  # fmt: skip
 from avatarperfect_cli.training.optim import LearningRates, create_optimizers, set_learning_rates
 from avatarperfect_cli.training.pose_refinement import PoseRefiner
@@ -124,6 +124,14 @@ def _supervised_region(view: TrainingView, margin: int) -> tuple[slice, slice]:
     return subject_bbox(view.foreground if view.loss_mask is None else view.loss_mask, margin)
 
 
+def _band_pixels(view: TrainingView, region: tuple[slice, slice], width: int) -> BandPixels:
+    """The `band_pixels` of a video view's mask band of `width` pixels, inside its loss `region`."""
+    rows, cols = region
+    frame = view.image[rows, cols] if view.filmed is None else view.filmed[rows, cols].float() / 255
+    backdrop = DATASET_BACKGROUND if view.backdrop is None else view.backdrop[rows, cols]
+    return band_pixels(boundary_band(view.foreground, width)[rows, cols], frame, backdrop)
+
+
 def _fixed_pose_transforms(avatar: Avatar, views: Sequence[TrainingView]) -> list[torch.Tensor]:
     """Each view's (24, 4, 4) joint transforms, computed once: the poses and `rest_joints` stay fixed during
     training (forward kinematics is a few dozen small operations, which on a GPU cost more than the
@@ -164,7 +172,7 @@ def train(
     state = strategy.initialize_state()
     regions = [_supervised_region(view, config.bbox_margin) for view in video]
     edit_regions = [_supervised_region(view, config.bbox_margin) for view in edits]
-    bands = [boundary_band(view.foreground, config.mask_band) for view in video] if config.mask_band else []
+    bands = [_band_pixels(view, region, config.mask_band) for view, region in zip(video, regions)] if config.mask_band else []
     video_transforms = None if pose_refiner is not None else _fixed_pose_transforms(avatar, video)
     edit_transforms = _fixed_pose_transforms(avatar, edits)
     edit_weights = [view.draw_weight for view in edits]
@@ -195,10 +203,7 @@ def train(
             mask = None if view.loss_mask is None else view.loss_mask[rows, cols]
             image = out.image[rows, cols]
             if mask is None and bands:
-                frame = view.image[rows, cols] if view.filmed is None else view.filmed[rows, cols].float() / 255
-                backdrop = DATASET_BACKGROUND if view.backdrop is None else view.backdrop[rows, cols]
-                band = bands[index][rows, cols]
-                image, target = mask_band_supervision(image, out.alpha[rows, cols], background, target, frame, backdrop, band)
+                image, target = mask_band_supervision(image, out.alpha[rows, cols], background, target, bands[index])
             loss = image_loss(image, target, mask, config.ssim_weight)
             if mask is not None and config.background_alpha_weight:
                 loss = loss + config.background_alpha_weight * background_alpha(out.alpha[rows, cols], mask, view.foreground[rows, cols])
@@ -212,5 +217,5 @@ def train(
             if pose_refiner is not None and mask is None:
                 pose_refiner.step(index, step)
             strategy.step_post_backward(avatar.params, optimizers, state, step, out)
-            bar.update(loss=loss.detach(), image=out.image[rows, cols].detach(), target=target, count=len(avatar))
+            bar.update(loss=loss.detach(), image=image.detach(), target=target, count=len(avatar))
     return avatar

@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from avatarperfect_cli.training.losses import _ssim_conv, boundary_band, image_loss, l1_loss, mask_band_supervision, ssim, subject_bbox
+from avatarperfect_cli.training.losses import _ssim_conv, band_pixels, boundary_band, image_loss, l1_loss, mask_band_supervision, ssim, subject_bbox
 
 
 def dense_ssim(x: torch.Tensor, y: torch.Tensor, border: int) -> torch.Tensor:
@@ -172,16 +172,16 @@ def test_mask_band_supervision_lets_the_frame_decide_at_the_edge_of_a_dilated_ma
     dilated = square_mask(size, 6, 18)
     target = torch.where(dilated[..., None], frame, background)
     assert image_loss(render, target) > 0.01
-    image, band_target = mask_band_supervision(render, alpha, background, target, frame, 1.0, boundary_band(dilated, 2))
+    image, band_target = mask_band_supervision(render, alpha, background, target, band_pixels(boundary_band(dilated, 2), frame, 1.0))
     assert image_loss(image, band_target) < 1e-6
     # with the exact mask the band changes nothing where the render is right
     exact_target = torch.where(subject[..., None], frame, background)
-    image, band_target = mask_band_supervision(render, alpha, background, exact_target, frame, 1.0, boundary_band(subject, 2))
+    image, band_target = mask_band_supervision(render, alpha, background, exact_target, band_pixels(boundary_band(subject, 2), frame, 1.0))
     assert image_loss(image, band_target) < 1e-6
     # a render that leaves the subject's edge transparent, or spills past it, costs in the band
     for wrong_alpha in (square_mask(size, 10, 14).float(), square_mask(size, 6, 18).float()):
         wrong = torch.where(wrong_alpha[..., None] > 0, colour, background)
-        image, band_target = mask_band_supervision(wrong, wrong_alpha, background, exact_target, frame, 1.0, boundary_band(subject, 2))
+        image, band_target = mask_band_supervision(wrong, wrong_alpha, background, exact_target, band_pixels(boundary_band(subject, 2), frame, 1.0))
         assert image_loss(image, band_target) > 0.01
 
 
@@ -199,12 +199,12 @@ def test_mask_band_supervision_over_a_filmed_backdrop_recovers_an_eroded_and_a_d
     render = torch.where(subject[..., None], colour, background)
     for wrong_mask in (square_mask(size, 10, 14), square_mask(size, 6, 18)):
         target = torch.where(wrong_mask[..., None], filmed, background)
-        image, band_target = mask_band_supervision(render, subject.float(), background, target, filmed, room, boundary_band(wrong_mask, 2))
+        image, band_target = mask_band_supervision(render, subject.float(), background, target, band_pixels(boundary_band(wrong_mask, 2), filmed, room))
         assert image_loss(image, band_target) < 1e-6
     eroded = square_mask(size, 10, 14)
     thin = torch.where(eroded[..., None], colour, background)
     target = torch.where(eroded[..., None], filmed, background)
-    image, band_target = mask_band_supervision(thin, eroded.float(), background, target, filmed, room, boundary_band(eroded, 2))
+    image, band_target = mask_band_supervision(thin, eroded.float(), background, target, band_pixels(boundary_band(eroded, 2), filmed, room))
     assert image_loss(image, band_target) > 0.01
 
 
@@ -216,7 +216,7 @@ def test_where_the_backdrop_is_unknown_the_mask_decides_in_the_band() -> None:
     render, alpha = torch.rand(size, size, 3), torch.rand(size, size)
     backdrop = torch.full((size, size, 3), 0.5)
     backdrop[:, :12] = float("nan")  # the left half unknown
-    image, band_target = mask_band_supervision(render, alpha, background, target, frame, backdrop, boundary_band(subject, 2))
+    image, band_target = mask_band_supervision(render, alpha, background, target, band_pixels(boundary_band(subject, 2), frame, backdrop))
     assert torch.equal(image[:, :12], render[:, :12]) and torch.equal(band_target[:, :12], target[:, :12])
     band = boundary_band(subject, 2)[:, 12:]
     assert not torch.equal(image[:, 12:][band], render[:, 12:][band])

@@ -265,6 +265,16 @@ def test_bound_scales_clamps_length_and_needles_but_not_discs() -> None:
     torch.testing.assert_close(unbounded.exp(), scales)
 
 
+def test_bound_scales_bounds_the_largest_by_the_sorted_second_largest() -> None:
+    """Every axis order and ties: the anisotropy bound follows the second largest of a sort."""
+    generator = torch.Generator().manual_seed(0)
+    log_scales = torch.randn(2000, 3, generator=generator) * 2 - 5
+    log_scales[:100, 1] = log_scales[:100, 0]  # ties
+    expected = torch.minimum(log_scales, log_scales.sort(dim=-1).values[:, 1:2] + math.log(10.0))
+    bound_scales(log_scales, max_scale=0.0, max_anisotropy=10.0)
+    assert torch.equal(log_scales, expected)
+
+
 def test_scales_stay_bounded_through_and_after_densification() -> None:
     params = make_params(6)
     optimizers = create_optimizers(params, LearningRates(skin_start=0))

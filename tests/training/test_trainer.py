@@ -12,7 +12,9 @@ from avatarperfect_cli.avatar.rendering import render_avatar
 from avatarperfect_cli.body import BodyTemplate
 from avatarperfect_cli.gaussians import rgb_to_sh
 from avatarperfect_cli.render import Camera, look_at
+from avatarperfect_cli.training.losses import boundary_band, subject_bbox
 from avatarperfect_cli.training.metrics import psnr
+from avatarperfect_cli.training.progress import TrainingProgress
 from avatarperfect_cli.training.strategy import DensifyConfig
 from avatarperfect_cli.training.trainer import TrainConfig, TrainingView, background_alpha, train
 
@@ -294,3 +296,18 @@ def test_a_backdrop_every_view_shares_is_moved_once():
     assert on_meta[0].backdrop is on_meta[1].backdrop is on_meta[2].backdrop
     assert on_meta[3].backdrop is not on_meta[0].backdrop
     assert len(moved) == 2
+
+
+def test_the_progress_bar_compares_what_the_loss_compares(monkeypatch):
+    """In the mask band the loss compares the render over the backdrop with the frame; the bar's PSNR must
+    read that render, not the one over the step's random background (which reads as a 13 dB avatar)."""
+    shown = []
+    monkeypatch.setattr(TrainingProgress, "update", lambda self, loss, image, target, count: shown.append((image, target)))
+    video = video_of(coloured_avatar())
+    train(coloured_avatar(), video, config=TrainConfig(iterations=4, mask_band=3, densify=UNBOUNDED), progress=False)
+    band_outside_subject = boundary_band(video[0].foreground, 3) & ~video[0].foreground
+    for image, target in shown:
+        rows, cols = subject_bbox(video[0].foreground, TrainConfig.bbox_margin)
+        empty = band_outside_subject[rows, cols]
+        assert empty.any()
+        assert psnr(image[empty], target[empty]) > 30
