@@ -14,7 +14,6 @@ import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import numpy as np
 import torch
 from rich.console import Console
 
@@ -106,22 +105,11 @@ def load_anny_template(
     )
     path = cache_dir / "templates" / f"anny-{hashlib.sha256(key.encode()).hexdigest()[:16]}.npz"
     if path.exists():
-        return _read_template(path)
+        return BodyTemplate.load(path)
     template = build_anny_template(load_anny_model(cache_dir, progress), values)
     with atomic_path(path) as temporary:
-        np.savez(
-            temporary,
-            **{name: getattr(template, name).numpy() for name in ("vertices", "faces", "weights", "rest_joints")},
-            uvs=template.uvs.numpy(),
-            face_uvs=template.face_uvs.numpy(),
-        )
+        template.save(temporary)
     return template
-
-
-def _read_template(path: Path) -> BodyTemplate:
-    with np.load(path) as data:
-        arrays = {name: torch.from_numpy(data[name]) for name in data.files}
-    return BodyTemplate(**arrays)
 
 
 def load_anny_model(cache_dir: Path, progress: bool = True) -> anny.Anny:

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import BinaryIO
 
+import numpy as np
 import torch
 
 # SMPL's 24-joint kinematic tree: parent of each joint, -1 for the root (pelvis).
@@ -60,3 +63,14 @@ class BodyTemplate:
             self.uvs,
             self.face_uvs,
         )
+
+    def save(self, file: Path | BinaryIO) -> None:
+        """Write the template's arrays to an uncompressed .npz (`load` reads it back to the bit)."""
+        arrays = {field.name: getattr(self, field.name) for field in fields(self)}
+        np.savez(file, **{name: value.numpy() for name, value in arrays.items() if value is not None})
+
+    @classmethod
+    def load(cls, path: Path) -> BodyTemplate:
+        """The template `save` wrote to `path`. Raises OSError, KeyError or ValueError on a file it cannot read."""
+        with np.load(path) as data:
+            return cls(**{name: torch.from_numpy(data[name]) for name in data.files})

@@ -142,7 +142,7 @@ _MANIFEST_TYPES: dict[str, tuple[tuple, str]] = {
     "version": _COUNT, "iteration": _COUNT, "dataset": _TEXT, "frames": ((dict, None), "an object or null"),
     "poses": ((str, None), "a string or null"), "transl_offset": (("numbers",), "a list of numbers"),
     "downscale": _COUNT, "camera": _OBJECT, "body_model": _OBJECT, "reference_pose": _OBJECT,
-    "refined_poses": ((str, None), "a string or null"), "history": ((list,), "a list of objects"),
+    "refined_poses": ((str, None), "a string or null"), "body_template": ((str, None), "a string or null"), "history": ((list,), "a list of objects"),
     "dataset_fingerprint": _OBJECT, "dataset_absolute": _TEXT,
 }  # fmt: skip
 _HISTORY_TYPES: dict[str, tuple[tuple, str]] = {

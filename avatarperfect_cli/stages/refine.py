@@ -17,7 +17,6 @@ from pathlib import Path
 from rich.console import Console
 
 from avatarperfect_cli.avatar.model import Avatar
-from avatarperfect_cli.body import load_described_template
 from avatarperfect_cli.errors import AvatarPerfectError
 from avatarperfect_cli.io.workspace import locked_workspace
 from avatarperfect_cli.refinement.additional_training import (
@@ -38,7 +37,7 @@ from avatarperfect_cli.refinement.additional_training import (
 from avatarperfect_cli.refinement.edit_progress import EditProgress, rendered_paint_error
 from avatarperfect_cli.refinement.visibility import DEFAULT_EDIT_WEIGHT
 from avatarperfect_cli.stages.visibility import current_visibility
-from avatarperfect_cli.stages.workspace_data import applied_edits, load_video, registered_edits
+from avatarperfect_cli.stages.workspace_data import applied_edits, body_template, load_video, registered_edits
 from avatarperfect_cli.training.trainer import train, video_views
 
 __all__ = ["RefineSettings", "refine", "revert"]
@@ -80,7 +79,7 @@ def refine(workspace_root: Path, settings: RefineSettings | None = None, progres
         deleted = int(deleted.sum())
         video = load_video(workspace)
         if settings.template_skinning > 0.0:
-            template = load_described_template(avatar.body_model, settings.smpl_model_dir)
+            template = body_template(workspace, avatar.body_model, settings.smpl_model_dir)
             pull_toward_template_skinning(
                 avatar, template, video.body_pose, video.transl, settings.template_skinning, settings.template_shift, settings.reanchor
             )

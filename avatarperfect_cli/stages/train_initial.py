@@ -38,6 +38,7 @@ AUTO_OFFSET, FIT_OFFSET = "auto", "fit"
 BODY_SHAPES = ("auto", "fit", "exact")
 # The picture of the body and pose fit in the workspace: the start and the fitted body over training masks.
 BODY_FIT_PICTURE = "body_fit.png"
+BODY_TEMPLATE = "body_template.npz"  # the body the avatar was built on, so no later stage rebuilds it
 
 
 def parse_transl_offset(text: str) -> str | tuple[float, float, float]:
@@ -287,11 +288,13 @@ def _train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool,
         "iteration": 0,
         "history": [{"stage": "train-initial", "avatar": 0, "iterations": fit.iterations, "seed": fit.seed, "seconds": round(seconds, 1), "gaussians": len(avatar)}],
     }
+    manifest["body_template"] = BODY_TEMPLATE
     if refiner is not None:
         manifest["refined_poses"] = REFINED_POSES
     with new_workspace(workspace, manifest, force) as staged:
         staged.set_dataset(dataset)  # relative to the staging folder, a sibling of `workspace`: the same path
         avatar.save(staged.avatar_path(0))
+        template.save(staged.root / BODY_TEMPLATE)
         if picture is not None:
             write_image(staged.root / BODY_FIT_PICTURE, torch.from_numpy(picture))
         if refiner is not None:

@@ -13,12 +13,14 @@ camera and reference pose, and its registered edits.
 from __future__ import annotations
 
 import json
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from avatarperfect_cli.body import BodyTemplate, load_described_template
 from avatarperfect_cli.datasets import FrameRange, VideoDataset, load_people_snapshot
 from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
 from avatarperfect_cli.io import PoseFile, read_image, read_pose
@@ -29,6 +31,8 @@ from avatarperfect_cli.render import Camera
 from avatarperfect_cli.training.trainer import TrainingView
 
 EDITS = "edits"
+# what numpy raises on a missing, truncated or foreign .npz
+UNREADABLE_NPZ = (OSError, EOFError, zipfile.BadZipFile, KeyError, TypeError, ValueError)
 SUGGESTIONS = "suggestions"
 
 
@@ -91,12 +95,26 @@ def load_video(workspace: Workspace, with_images: bool = True) -> VideoDataset:
         try:
             with np.load(path) as data:
                 frame_ids, body_pose, transl = data["frame_ids"], data["body_pose"], data["transl"]
-        except (OSError, KeyError, ValueError) as error:
+        except UNREADABLE_NPZ as error:
             raise InputFileError(path, f"unreadable refined poses ({error})") from None
         if not np.array_equal(frame_ids, video.frame_ids.numpy()):
             raise InputFileError(path, "refined poses do not cover the workspace's frames")
         video.body_pose, video.transl = torch.from_numpy(body_pose).float(), torch.from_numpy(transl).float()
     return video
+
+
+def body_template(workspace: Workspace, body_model: dict, smpl_model_dir: Path | None = None) -> BodyTemplate:
+    """The body the workspace's avatars were built on: the template train-initial saved (manifest
+    "body_template"), else the one the avatar's `body_model` metadata describes (rebuilt from the body model;
+    SMPL needs `smpl_model_dir`)."""
+    saved = workspace.manifest.get("body_template")
+    if not saved:
+        return load_described_template(body_model, smpl_model_dir)
+    path = workspace.root / str(saved)
+    try:
+        return BodyTemplate.load(path)
+    except UNREADABLE_NPZ as error:
+        raise InputFileError(path, f"unreadable body template ({error})") from None
 
 
 def video_poses(workspace: Workspace) -> list[PoseFile]:

@@ -34,7 +34,7 @@ def test_train_initial_creates_the_workspace(workspace: Path):
     assert ws.iteration == 0 and ws.avatar_path(0).is_file()
     assert ws.manifest["body_model"]["name"] == "anny" and ws.manifest["downscale"] == 4
     assert ws.manifest["camera"]["width"] == 64
-    assert sorted(p.name for p in workspace.iterdir()) == ["avatar", "workspace.json"]
+    assert sorted(p.name for p in workspace.iterdir()) == ["avatar", "body_template.npz", "workspace.json"]
 
 
 def test_existing_workspace_is_refused_without_force(workspace: Path):

@@ -17,7 +17,7 @@ from typer.testing import CliRunner
 from avatarperfect_cli.avatar.model import Avatar
 from avatarperfect_cli.cli import app
 from avatarperfect_cli.io import read_image, read_pose, write_image
-from avatarperfect_cli.io.workspace import open_workspace
+from avatarperfect_cli.io.workspace import MANIFEST, open_workspace
 
 SAMPLE = Path(__file__).resolve().parents[2] / "examples" / "sample"
 TRAIN_ARGS = ["--iterations", "30", "--resolution", "64", "--frames", "0:59:6"]
@@ -575,7 +575,37 @@ def test_refine_pulls_the_skinning_no_further_than_the_shift_bound(workspace: Pa
     assert (after < before).float().mean() > 0.99
 
 
+def test_refine_reads_the_body_template_train_initial_saved(workspace: Path, monkeypatch):
+    """The workspace keeps the body its avatar was built on: refine's skinning pull needs no body model (anny's
+    0.8 GB cache, SMPL's files) wherever the workspace goes, and the saved body is the one the avatar describes."""
+    from avatarperfect_cli.body import BodyTemplate, load_described_template
+    from avatarperfect_cli.stages import workspace_data
+
+    saved = BodyTemplate.load(workspace / open_workspace(workspace).manifest["body_template"])
+    described = load_described_template(Avatar.load(workspace / "avatar" / "000.ply").body_model)
+    for name in ("vertices", "faces", "weights", "rest_joints"):
+        assert torch.equal(getattr(saved, name), getattr(described, name)), name
+
+    def no_body_model(*args, **kwargs):
+        raise AssertionError("refine rebuilt the body from its model")
+
+    monkeypatch.setattr(workspace_data, "load_described_template", no_body_model)
+    assert invoke("refine", workspace, "--iterations", "1").exit_code == 0
+
+
+def test_a_damaged_body_template_is_one_line_naming_it(workspace: Path):
+    path = workspace / open_workspace(workspace).manifest["body_template"]
+    path.write_bytes(path.read_bytes()[:100])
+    before = snapshot(workspace)
+    assert str(path) in one_line_error(invoke("refine", workspace, "--iterations", "1"))
+    assert snapshot(workspace) == before
+
+
 def test_refine_of_an_avatar_without_its_body_model_is_one_line(workspace: Path):
+    """A workspace from before train-initial saved the body: refine rebuilds it from the avatar's description."""
+    manifest = json.loads((workspace / MANIFEST).read_text())
+    del manifest["body_template"]
+    (workspace / MANIFEST).write_text(json.dumps(manifest))
     avatar = Avatar.load(workspace / "avatar" / "000.ply")
     avatar.body_model = {}
     avatar.save(workspace / "avatar" / "000.ply")
