@@ -71,6 +71,7 @@ class BodyTemplate:
 
     @classmethod
     def load(cls, path: Path) -> BodyTemplate:
-        """The template `save` wrote to `path`. Raises OSError, KeyError or ValueError on a file it cannot read."""
+        """The template `save` wrote to `path`; a file numpy cannot read raises what numpy raises (OSError,
+        zipfile.BadZipFile, KeyError, ValueError...)."""
         with np.load(path) as data:
             return cls(**{name: torch.from_numpy(data[name]) for name in data.files})
