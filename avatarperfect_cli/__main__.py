@@ -4,15 +4,10 @@ Ctrl-C and SIGTERM are routed to `interrupts` first, so a signal during the star
 in "interrupted" and status 130. A command that writes a workspace another stage holds is refused before
 the CLI's heavy imports (torch and numba take seconds to load), with the line the lock itself gives; the
 lock stays the authority.
-
-MKL, torch's CPU BLAS, runs in its reproducible mode: its threaded products otherwise change their last bits
-from process to process, and the body fit amplifies them into a different body (two fits in six runs of
-the same `train-initial` differed).
 """
 
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 
@@ -25,7 +20,6 @@ LOCKING_COMMANDS = frozenset(
 
 
 def main() -> None:
-    reproducible_numerics()
     from avatarperfect_cli import interrupts
 
     interrupts.install()
@@ -39,13 +33,6 @@ def main() -> None:
         raise SystemExit(130) from None
     finally:
         interrupts.finish()
-
-
-def reproducible_numerics() -> None:
-    """Ask MKL for results that do not depend on the process (its conditional numerical reproducibility on
-    the code path every x86 CPU has), unless the user chose a mode; it must run before torch loads MKL.
-    Measured on 2 cores: train-initial at 512² took as long with it as without."""
-    os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
 
 
 def refuse_busy_workspace(argv: list[str]) -> None:

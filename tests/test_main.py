@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -44,14 +43,3 @@ def test_a_free_workspace_goes_on_to_the_cli(tmp_path: Path) -> None:
     # the CLI itself ran (torch loaded) and refused an empty folder as a workspace, in one line
     assert result.stdout.split() == ["True", "2"]
     assert "another avatarperfect stage" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
-
-
-def test_mkl_runs_in_its_reproducible_mode_unless_the_user_chose_one() -> None:
-    """Set before any command loads torch (and MKL with it), so a body fit gives the same body in every process."""
-    probe = "import os, sys\n" + PROBE + "print(os.environ.get('MKL_CBWR'), 'torch' in sys.modules)\n"
-    environment = {name: value for name, value in os.environ.items() if name != "MKL_CBWR"}
-    for chosen, expected in ((None, "COMPATIBLE"), ("AVX2", "AVX2")):
-        if chosen is not None:
-            environment["MKL_CBWR"] = chosen
-        result = subprocess.run([sys.executable, "-c", probe, "--help"], capture_output=True, text=True, timeout=300, env=environment)
-        assert result.stdout.split()[-2:] == [expected, "False"], result.stdout
