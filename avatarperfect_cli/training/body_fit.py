@@ -10,6 +10,11 @@ They are differentiable in the template through anny's torch forward pass, so Ad
                    pulled toward zero: limbs and shoulders land where the masks show them in every pose;
     offset         a translation in the image plane added to every frame (along the viewing direction a
                    silhouette only tells the body's size).
+The root joint of a posed body lands at its rest position plus the frame's translation, and anny's rest
+root moves with the phenotype (its feet stay put: a taller body's pelvis is higher). So the translation
+follows the root: a phenotype that moves the rest root by d moves every frame's translation by -d, and
+the body grows and shrinks about the place where the video's translations put its pelvis instead of
+about its feet, which the offset would otherwise have to chase (tens of centimetres for a tall body).
 The fit starts from a few phenotypes (the middle, a more male and a more female body) and continues the best.
 With estimated poses (`poses` given) the best start continues over every frame with each frame's pose fitted
 at the same time (`pose_fit.PoseOffsets`: smooth along the video, near the given pose, averaging to zero
@@ -65,9 +70,9 @@ class BodyFitConfig:
     points: int = 5000
     contour_pixels: int = 400
     starts: tuple[dict[str, float], ...] = field(default_factory=lambda: ({}, {"gender": 0.15}, {"gender": 0.85}))
-    start_steps: int = 60
+    start_steps: int = 80
     shape_steps: int = 200
-    phenotype_rate: float = 0.08
+    phenotype_rate: float = 0.04
     offset_rate: float = 0.003
     bone_rate: float = 0.002
     relinearise_every: int = 20
@@ -198,12 +203,13 @@ def fit_body(
     frames = torch.linspace(0, len(video) - 1, min(config.frames, len(video))).round().long().unique()
     if anny_model is not None:
         with torch.no_grad():
-            start_vertices = anny_shape(anny_model, torch.full((len(PHENOTYPES),), 0.5, dtype=torch.float64))[0].float()
+            start_vertices, start_joints = anny_shape(anny_model, torch.full((len(PHENOTYPES),), 0.5, dtype=torch.float64))
+        start_vertices, start_root = start_vertices.float(), start_joints[0].float()
         faces, weights = anny_model.faces.long(), joint_weights(anny_model).float()
         starts = config.starts
     elif template is not None:
         start_vertices, faces, weights = template.vertices.float(), template.faces, template.weights.float()
-        starts = ({},)
+        start_root, starts = template.rest_joints[0].float(), ({},)
     else:
         raise ValueError("fit_body needs anny_model or template")
 
@@ -220,13 +226,17 @@ def fit_body(
         whole = compared(every, poses.points, PoseOffsets(video.frame_ids, poses, zero_mean=True))
     axes = subset.data.camera.world_to_camera[:2, :3].float()  # the camera's right and down axes, world frame
 
+    def offset_of(shape: _BodyShape, root: torch.Tensor) -> torch.Tensor:
+        """(3,) metres added to every frame's transl for the body whose rest root is `root` (3,)."""
+        return initial_offset + (start_root - root) + shape.image_offset @ axes
+
     def loss_of(shape: _BodyShape, on: _Compared, with_bones: bool) -> tuple[torch.Tensor, torch.Tensor]:
         points, joints = on.shape_near(shape.phenotype())
+        body_pose, transl = on.data.body_pose, on.data.transl + offset_of(shape, joints[0])
         if with_bones:
             displacements = joint_displacements(shape.bone_offsets())
             points = points + on.weights @ displacements
             joints = joints + displacements
-        body_pose, transl = on.data.body_pose, on.data.transl + initial_offset + shape.image_offset @ axes
         if on.poses is not None:
             body_pose, transl = body_pose + on.poses.pose, transl + on.poses.transl
         posed = skin_points(points, on.weights, forward_kinematics(body_pose, joints, transl))
@@ -273,7 +283,7 @@ def fit_body(
         loss = float(loss_of(best, whole, True)[1])
         phenotype = {name: round(float(value), PHENOTYPE_DECIMALS) for name, value in zip(PHENOTYPES, best.phenotype())}
         phenotype = phenotype if anny_model is not None else {}
-        offset = (initial_offset + best.image_offset @ axes).detach().clone()
+        offset = offset_of(best, whole.shape_near(best.phenotype())[1][0]).detach().clone()
     result = BodyFit(phenotype, best.bone_offsets().detach().clone(), offset, loss, start_loss)
     if whole.poses is not None:
         result.body_pose, result.transl = whole.poses.applied(video.body_pose, video.transl + offset)

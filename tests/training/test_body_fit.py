@@ -58,6 +58,23 @@ def test_anny_fit_from_the_middle_lands_near_the_true_skeleton(video: VideoDatas
     assert iou_fitted > iou_start
 
 
+def test_a_body_far_from_the_start_is_fitted_about_its_root(video: VideoDataset) -> None:
+    """From a short, female start (the sample is a tall male, his pelvis 16 cm higher above his feet than the
+    middle body's), at the offset that best overlays the middle body (as `train-initial` searches it): the
+    fitted body's rest joints, moved by the fitted offset, land near the sample's, its root included (a fit
+    that grows the body about its feet has to chase that difference with the offset and stops short)."""
+    from avatarperfect_cli.training.template_offset import fit_transl_offset
+
+    truth = load_body_template("anny", phenotype=video.subject["phenotype"])
+    offset = fit_transl_offset(load_body_template("anny"), video).offset
+    far = replace(QUICK, starts=({"gender": 1.0, "height": 0.1},), start_steps=BodyFitConfig.start_steps)
+    fit = fit_body(video, offset, far, anny_model=load_anny_model(default_cache_dir(), progress=False))
+    fitted = load_body_template("anny", phenotype=fit.phenotype).with_bone_offsets(fit.bone_offsets)
+    placed = fitted.rest_joints + fit.transl_offset
+    assert float((placed[0] - truth.rest_joints[0]).norm()) < 0.015, (placed[0], truth.rest_joints[0])
+    assert float((placed - truth.rest_joints).norm(dim=1).mean()) < 0.015
+
+
 @pytest.mark.parametrize("fill", [False, True])
 def test_a_mask_with_no_body_to_fit_is_named(video: VideoDataset, fill: bool) -> None:
     masks = video.masks.clone()
