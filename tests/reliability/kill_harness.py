@@ -436,7 +436,10 @@ class Harness:
         if now == before and reference.after == reference.before and (status == 0 or written):
             outcome.state = "new"  # a stage whose result is its outputs alone (checked below) finished
         elif now == before or _old_but_refreshed(stage, now, before, reference.after):
-            outcome.state = "old"
+            # a run that ended well and recomputed its refreshed folders (their last bits follow the threads'
+            # timing when the cores are shared) left the new state; a killed one, the old state refreshed
+            finished = status == 0 and now != before and (written or not stage.outputs)
+            outcome.state = "new" if finished else "old"
         elif _after_some_steps(stage, now, before, reference.after):
             damage = self.check_workspace(workspace, folder)
             problems.extend(damage)
