@@ -135,19 +135,14 @@ class _LinearisedAnny:
     def linearise(self, phenotype: torch.Tensor) -> None:
         """Evaluate anny at `phenotype` (6,) and at a step along each value (toward the middle)."""
         centre = phenotype.detach().double()
-        with torch.no_grad():
-            base_vertices, base_joints = anny_shape(self.model, centre)
-            rows_v, rows_j = [], []
-            for index in range(len(PHENOTYPES)):
-                delta = self.step if centre[index] < 0.5 else -self.step
-                moved = centre.clone()
-                moved[index] += delta
-                vertices, joints = anny_shape(self.model, moved)
-                rows_v.append((vertices[self.points] - base_vertices[self.points]) / delta)
-                rows_j.append((joints - base_joints) / delta)
+        deltas = torch.where(centre < 0.5, self.step, -self.step)
+        with torch.no_grad():  # one batched forward pass: the centre, then a step along each value
+            vertices, joints = anny_shape(self.model, torch.cat([centre[None], centre + torch.diag(deltas)]))
+        points = vertices[:, self.points]
         self.centre = centre.float()
-        self.base_points, self.base_joints = base_vertices[self.points].float(), base_joints.float()
-        self.point_slopes, self.joint_slopes = torch.stack(rows_v).float(), torch.stack(rows_j).float()
+        self.base_points, self.base_joints = points[0].float(), joints[0].float()
+        self.point_slopes = ((points[1:] - points[0]) / deltas[:, None, None]).float()
+        self.joint_slopes = ((joints[1:] - joints[0]) / deltas[:, None, None]).float()
 
     def __call__(self, phenotype: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Points (P, 3) and rest joints (24, 3) at `phenotype` (6,), SMPL frame, metres."""

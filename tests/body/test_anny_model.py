@@ -166,6 +166,21 @@ def test_anny_shape_gradient_matches_finite_differences() -> None:
         assert float(phenotype.grad[index]) == pytest.approx(float(numeric), rel=1e-3, abs=1e-6)
 
 
+def test_a_batch_of_phenotypes_gives_each_body_as_built_alone() -> None:
+    from avatarperfect_cli.body.anny_model import anny_shape, default_cache_dir, load_anny_model
+
+    model = load_anny_model(default_cache_dir(), progress=False)
+    bodies = torch.tensor([[0.3, 0.6, 0.5, 0.4, 0.7, 0.5], [0.9, 0.1, 0.8, 0.2, 0.3, 0.6]], dtype=torch.float64)
+    with torch.no_grad():
+        vertices, joints = anny_shape(model, bodies)
+        for index, phenotype in enumerate(bodies):
+            alone_vertices, alone_joints = anny_shape(model, phenotype)
+            assert alone_vertices.shape == vertices.shape[1:] and alone_joints.shape == (24, 3)
+            torch.testing.assert_close(vertices[index], alone_vertices, rtol=0, atol=1e-12)
+            torch.testing.assert_close(joints[index], alone_joints, rtol=0, atol=1e-12)
+    assert (joints[0] - joints[1]).norm(dim=-1).max() > 0.05  # two different bodies, not one repeated
+
+
 def test_a_described_skeleton_correction_is_applied_and_checked() -> None:
     from avatarperfect_cli.body import load_body_template, load_described_template
     from avatarperfect_cli.errors import AvatarPerfectError
