@@ -15,7 +15,8 @@ root moves with the phenotype (its feet stay put: a taller body's pelvis is high
 follows the root: a phenotype that moves the rest root by d moves every frame's translation by -d, and
 the body grows and shrinks about the place where the video's translations put its pelvis instead of
 about its feet, which the offset would otherwise have to chase (tens of centimetres for a tall body).
-The fit starts from a few phenotypes (the middle, a more male and a more female body) and continues the best.
+The fit starts from a few phenotypes (the middle, a more male, a more female and an older body) and continues
+the best.
 With estimated poses (`poses` given) the best start continues over every frame with each frame's pose fitted
 at the same time (`pose_fit.PoseOffsets`: smooth along the video, near the given pose, averaging to zero
 over the video): a pose estimator's errors differ from frame to frame and the body is the same in all, so
@@ -69,7 +70,7 @@ class BodyFitConfig:
     resolution: int = 256
     points: int = 5000
     contour_pixels: int = 400
-    starts: tuple[dict[str, float], ...] = field(default_factory=lambda: ({}, {"gender": 0.15}, {"gender": 0.85}))
+    starts: tuple[dict[str, float], ...] = field(default_factory=lambda: ({}, {"gender": 0.15}, {"gender": 0.85}, {"age": 0.85}))
     start_steps: int = 80
     shape_steps: int = 200
     phenotype_rate: float = 0.04
