@@ -136,7 +136,8 @@ class _LinearisedAnny:
     def linearise(self, phenotype: torch.Tensor) -> None:
         """Evaluate anny at `phenotype` (6,) and at a step along each value (toward the middle)."""
         centre = phenotype.detach().double()
-        deltas = torch.where(centre < 0.5, self.step, -self.step)
+        deltas = torch.full_like(centre, self.step)
+        deltas[centre >= 0.5] = -self.step
         with torch.no_grad():  # one batched forward pass: the centre, then a step along each value
             vertices, joints = anny_shape(self.model, torch.cat([centre[None], centre + torch.diag(deltas)]))
         points = vertices[:, self.points]
