@@ -1,6 +1,6 @@
 """The own-video path end to end on a synthetic subject whose truth is known (docs/real-data.md).
 
-    python -m benchmarks.own_video OUT [--preset default] [--resolution 512] [--frames 100] [--iterations 2000]
+    python -m benchmarks.own_video OUT [--preset default] [--resolution 512] [--frames 100] [--iterations 2000] [--fov DEG]
 
 1. `make-sample`'s turn-around of the preset (OUT/sample/train: exact poses, exact masks, white background).
 2. The same frames as a user's video: each person composited over a background that is not white (a
@@ -14,7 +14,10 @@
    (`--body-shape exact`), scored on the odd frames with the exact poses.
 
 Prints one row per path: held-out IoU, PSNR and SSIM (given and refined poses), the Gaussian count and the
-share of Gaussians longer than 3 cm; the comparison pictures are in each workspace's eval folder.
+share of Gaussians longer than 3 cm; the comparison pictures are in each workspace's eval folder. Then how far
+the training frames' joints land from the true ones in the image, with `prepare`'s poses and with the poses
+the workspace trained on (fitted with the body and refined in training): the mean over joints and frames and
+the worst frame, in pixels (the two skeletons are different bodies, so a few pixels remain at exact poses).
 """
 
 from __future__ import annotations
@@ -28,10 +31,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from avatarperfect_cli.datasets import load_people_snapshot, write_people_snapshot
+from avatarperfect_cli.body import BodyTemplate, forward_kinematics, load_body_template, posed_joints
+from avatarperfect_cli.datasets import VideoDataset, load_people_snapshot, write_people_snapshot
+from avatarperfect_cli.datasets.people_snapshot import FrameRange
 from avatarperfect_cli.io.video import frame_writer
 from avatarperfect_cli.io.workspace import open_workspace
 from avatarperfect_cli.sample.generate import make_sample
+from avatarperfect_cli.stages.workspace_data import body_template, load_video, transl_offset
+from avatarperfect_cli.training.silhouette import project
 from benchmarks.mask_error import long_shares
 
 CLI = [sys.executable, "-m", "avatarperfect_cli"]
@@ -66,6 +73,30 @@ def truth_test_folder(sample_train: Path, prepared: Path, out: Path) -> None:
     write_people_snapshot(out, images, truth.masks.numpy(), estimate.body_pose, estimate.transl, estimate.camera, subject=estimate.subject)
 
 
+def image_joints(video: VideoDataset, rest_joints: torch.Tensor) -> torch.Tensor:
+    """(T, 24, 2) pixels: the video's posed joints of the body whose rest joints are `rest_joints` (24, 3), in its camera."""
+    rest_joints = rest_joints.float()
+    world = posed_joints(forward_kinematics(video.body_pose.float(), rest_joints, video.transl.float()), rest_joints)
+    return project(world.reshape(-1, 3), video.camera).reshape(len(video), -1, 2)
+
+
+def joint_errors(sample_train: Path, prepared: Path, workspace: Path, frames: FrameRange) -> dict[str, torch.Tensor]:
+    """(T,) mean image distance (pixels) of the training frames' joints from the truth's, per frame: with
+    `prepare`'s poses and with the workspace's (both on the workspace's fitted body and offset)."""
+    truth = load_people_snapshot(sample_train, frames, with_images=False)
+    subject = load_body_template("anny", phenotype=truth.subject["phenotype"]).rest_joints
+    expected = image_joints(truth, subject)
+    opened = open_workspace(workspace)
+    fitted: BodyTemplate = body_template(opened, opened.manifest["body_model"])
+    given = load_people_snapshot(prepared, frames, with_images=False)
+    given.transl = given.transl + transl_offset(opened)
+    trained = load_video(opened, with_images=False)
+    return {
+        name: (image_joints(video, fitted.rest_joints) - expected).norm(dim=-1).mean(dim=-1)
+        for name, video in (("prepare's poses", given), ("the workspace's poses", trained))
+    }
+
+
 def scores(workspace: Path, test: Path) -> dict:
     """The latest metrics.json of `workspace` on `test`."""
     return json.loads((open_workspace(workspace).eval_dir() / test.name / "metrics.json").read_text())
@@ -78,6 +109,7 @@ def main() -> None:
     parser.add_argument("--resolution", type=int, default=512)
     parser.add_argument("--frames", type=int, default=100)
     parser.add_argument("--iterations", type=int, default=2000)
+    parser.add_argument("--fov", type=float, help="prepare's field of view, degrees (default: prepare's assumed one)")
     args = parser.parse_args()
     out, frames = args.out, args.frames
     train, even, odd = out / "sample" / "train", f"0:{frames - 1}:2", f"1:{frames - 1}:2"
@@ -86,7 +118,8 @@ def main() -> None:
     if not (out / "video.mp4").is_file():
         write_video(train, out / "video.mp4")
     if not (out / "prepared" / "poses.npz").is_file():
-        subprocess.run([*CLI, "prepare", str(out / "video.mp4"), str(out / "prepared")], check=True)
+        fov = () if args.fov is None else ("--fov", str(args.fov))
+        subprocess.run([*CLI, "prepare", str(out / "video.mp4"), str(out / "prepared"), *fov], check=True)
     truth_test_folder(train, out / "prepared", out / "truth-test")  # refuses a prepared folder missing frames
     run = lambda *command: subprocess.run([*CLI, *map(str, command)], check=True)  # noqa: E731
     iterations = ("--iterations", args.iterations)
@@ -104,6 +137,11 @@ def main() -> None:
     for label, workspace, mean in rows:
         count, shares = long_shares(open_workspace(workspace).require_avatar())
         print(f"| {label} | {mean['iou']:.3f} | {mean['psnr']:.2f} | {mean['ssim']:.4f} | {count:,} | {100 * shares[0]:.2f} % |")
+    training = FrameRange(0, frames - 1, 2)
+    for name, errors in joint_errors(train, out / "prepared", out / "ws-own", training).items():
+        worst = int(errors.argmax())
+        print(f"training frames' joints with {name}: {errors.mean():.2f} px from the truth on average, "
+              f"{errors[worst]:.2f} px at frame {training.start + worst * training.step}")
 
 
 if __name__ == "__main__":
