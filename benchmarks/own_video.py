@@ -17,7 +17,8 @@ Prints one row per path: held-out IoU, PSNR and SSIM (given and refined poses), 
 share of Gaussians longer than 3 cm; the comparison pictures are in each workspace's eval folder. Then how far
 the training frames' joints land from the true ones in the image, with `prepare`'s poses and with the poses
 the workspace trained on (fitted with the body and refined in training): the mean over joints and frames and
-the worst frame, in pixels (the two skeletons are different bodies, so a few pixels remain at exact poses).
+the worst frame, in pixels (the fitted body is not the subject's, so its joints need not meet the truth's
+even at exact poses).
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from avatarperfect_cli.body import BodyTemplate, forward_kinematics, load_body_template, posed_joints
+from avatarperfect_cli.body import forward_kinematics, load_body_template, posed_joints
 from avatarperfect_cli.datasets import VideoDataset, load_people_snapshot, write_people_snapshot
 from avatarperfect_cli.datasets.people_snapshot import FrameRange
 from avatarperfect_cli.io.video import frame_writer
@@ -87,7 +88,7 @@ def joint_errors(sample_train: Path, prepared: Path, workspace: Path, frames: Fr
     subject = load_body_template("anny", phenotype=truth.subject["phenotype"]).rest_joints
     expected = image_joints(truth, subject)
     opened = open_workspace(workspace)
-    fitted: BodyTemplate = body_template(opened, opened.manifest["body_model"])
+    fitted = body_template(opened, opened.manifest["body_model"])
     given = load_people_snapshot(prepared, frames, with_images=False)
     given.transl = given.transl + transl_offset(opened)
     trained = load_video(opened, with_images=False)
