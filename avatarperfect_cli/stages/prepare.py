@@ -124,7 +124,11 @@ def prepare(video: Path, out: Path, settings: PrepareSettings | None = None, pro
     }
     images = np.stack([frame for frame, keep in zip(frames, found) if keep])
     write_people_snapshot(out, images, landmarks.masks, body_pose, transl, camera, subject=subject)
-    console.print(f"wrote {out} ({len(images)} frames of {width}x{height})")
+    console.print(
+        f"wrote {out} ({len(images)} frames of {width}x{height}, a {settings.fov_degrees:g}° field of view across the "
+        "longer side; --fov sets your camera's)",
+        soft_wrap=True,
+    )
     return Path(out)
 
 

@@ -16,7 +16,7 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from avatarperfect_cli.body import forward_kinematics, load_body_template
+from avatarperfect_cli.body import BodyTemplate, forward_kinematics, load_body_template
 from avatarperfect_cli.cli import app
 from avatarperfect_cli.datasets import load_people_snapshot
 from avatarperfect_cli.io.video import frame_writer
@@ -73,9 +73,13 @@ def test_prepare_recovers_masks_and_joints_of_a_walking_turning_subject(tmp_path
     result = CliRunner().invoke(app, ["train-initial", str(tmp_path / "prepared"), str(tmp_path / "ws"), *fast])
     assert result.exit_code == 0, result.output
     # the poses were fitted for anny, so the body fit (the default for prepared folders) and the pose fit only
-    # move it in the image plane, by about a centimetre
-    manifest = open_workspace(tmp_path / "ws").manifest
-    assert np.linalg.norm(manifest["transl_offset"]) < 0.03 and manifest["transl_offset"][2] == 0.0
+    # move it in the image plane, by about a centimetre, besides following the fitted body's pelvis (the world
+    # is the camera's frame: z is depth)
+    workspace = open_workspace(tmp_path / "ws")
+    manifest = workspace.manifest
+    pelvis_shift = load_body_template("anny").rest_joints[0] - BodyTemplate.load(workspace.root / manifest["body_template"]).rest_joints[0]
+    assert np.linalg.norm(manifest["transl_offset"]) < 0.03
+    assert abs(manifest["transl_offset"][2] - float(pelvis_shift[2])) < 1e-4, (manifest["transl_offset"], pelvis_shift)
     assert set(manifest["body_model"]["phenotype"]) == {"gender", "age", "muscle", "weight", "height", "proportions"}
     assert manifest["refined_poses"] == "poses.npz"
 
