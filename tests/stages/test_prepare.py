@@ -85,9 +85,9 @@ def test_prepare_recovers_masks_and_joints_of_a_walking_turning_subject(tmp_path
 
 
 def test_without_mediapipe_prepare_says_how_to_get_it_in_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
-    for name in ["mediapipe", "mediapipe.python", "mediapipe.python.solutions", *sys.modules]:
-        if name == "mediapipe" or name.startswith("mediapipe."):
-            monkeypatch.setitem(sys.modules, name, None)  # as if it were not installed (nor imported yet)
+    imported = {name for name in sys.modules if name.startswith("mediapipe.")}
+    for name in {"mediapipe", "mediapipe.python", "mediapipe.python.solutions"} | imported:
+        monkeypatch.setitem(sys.modules, name, None)  # as if it were not installed (nor imported yet)
     writer = cv2.VideoWriter(str(tmp_path / "video.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (32, 32))
     writer.write(np.zeros((32, 32, 3), np.uint8))
     writer.release()  # a readable video: the output and the video are checked before MediaPipe is needed
