@@ -249,8 +249,8 @@ def evaluate(
     ),  # fmt: skip
     device: str = typer.Option("auto", help=DEVICE_HELP),
     refine_poses: bool = typer.Option(
-        False, "--refine-poses", help="Also score with each held-out pose fitted to its frame (mask, then image) with the "
-        "avatar fixed, so estimated test poses do not count against the avatar; both scores are reported.",
+        False, "--refine-poses", help="Also score with each held-out pose fitted to its frame (mask, then image, from whichever of "
+        "the two poses matches the image better) with the avatar fixed, so estimated test poses do not count against the avatar; both scores are reported.",
     ),  # fmt: skip
 ) -> None:
     """IoU, PSNR and SSIM on held-out poses (moved by the workspace's translation offset, like its training poses)."""

@@ -1,6 +1,6 @@
 """The own-video path end to end on a synthetic subject whose truth is known (docs/real-data.md).
 
-    python -m benchmarks.own_video OUT [--preset default] [--resolution 512] [--frames 100] [--iterations 2000] [--fov DEG]
+    python -m benchmarks.own_video OUT [--preset default] [--resolution 512] [--frames 100] [--iterations 2000] [--fov DEG] [--split]
 
 1. `make-sample`'s turn-around of the preset (OUT/sample/train: exact poses, exact masks, white background).
 2. The same frames as a user's video: each person composited over a background that is not white (a
@@ -10,8 +10,12 @@
 4. `evaluate --refine-poses` on the odd frames, against the true frames: OUT/truth-test holds the sample's
    images and masks with the prepared folder's camera and poses, so the score measures the avatar and not
    MediaPipe's masks.
-5. The reference: the same even frames with their exact poses and the subject's own body
-   (`--body-shape exact`), scored on the odd frames with the exact poses.
+5. Two references, each scored on the odd frames with the exact poses: the even frames as the video has them
+   (OUT/video-exact: its decoded images and `prepare`'s masks, with the exact camera and poses) and as the
+   sample has them, both on the subject's own body (`--body-shape exact`). The first differs from the own
+   video only in what `prepare` and the fit estimate (poses, body, camera): it is the target. The second
+   also shows what the video costs; `--split` adds the two between (only the images, only the masks the
+   video's).
 
 Prints one row per path: held-out IoU, PSNR and SSIM (given and refined poses), the Gaussian count and the
 share of Gaussians longer than 3 cm; the comparison pictures are in each workspace's eval folder. Then how far
@@ -74,6 +78,25 @@ def truth_test_folder(sample_train: Path, prepared: Path, out: Path) -> None:
     write_people_snapshot(out, images, truth.masks.numpy(), estimate.body_pose, estimate.transl, estimate.camera, subject=estimate.subject)
 
 
+def exact_pose_folder(sample_train: Path, prepared: Path, out: Path, video_images: bool = True, video_masks: bool = True) -> None:
+    """The sample's camera, poses and subject with the prepared folder's images and masks (else the sample's)."""
+    truth = load_people_snapshot(sample_train, downscale=1)
+    video = load_people_snapshot(prepared, downscale=1)
+    images = ((video if video_images else truth).images.numpy() * 255.0).round().astype(np.uint8)
+    masks = (video if video_masks else truth).masks.numpy()
+    write_people_snapshot(out, images, masks, truth.body_pose, truth.transl, truth.camera, subject=truth.subject)
+
+
+def decoded_psnr(sample_train: Path, prepared: Path, inset: int = 3) -> float:
+    """PSNR (dB) of the prepared folder's decoded frames against the sample's, over the pixels both masks hold
+    `inset` pixels inside their edges (the person, not the background or its boundary)."""
+    truth = load_people_snapshot(sample_train, downscale=1)
+    video = load_people_snapshot(prepared, downscale=1)
+    both = (truth.masks & video.masks).float()[:, None]
+    inside = -torch.nn.functional.max_pool2d(-both, 2 * inset + 1, 1, inset)[:, 0] > 0.5
+    return float(-10.0 * torch.log10((video.images - truth.images)[inside].square().mean()))
+
+
 def image_joints(video: VideoDataset, rest_joints: torch.Tensor) -> torch.Tensor:
     """(T, 24, 2) pixels: the video's posed joints of the body whose rest joints are `rest_joints` (24, 3), in its camera."""
     rest_joints = rest_joints.float()
@@ -111,6 +134,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=100)
     parser.add_argument("--iterations", type=int, default=2000)
     parser.add_argument("--fov", type=float, help="prepare's field of view, degrees (default: prepare's assumed one)")
+    parser.add_argument("--split", action="store_true", help="also the references with only the images or only the masks the video's")
     args = parser.parse_args()
     out, frames = args.out, args.frames
     train, even, odd = out / "sample" / "train", f"0:{frames - 1}:2", f"1:{frames - 1}:2"
@@ -126,18 +150,29 @@ def main() -> None:
     iterations = ("--iterations", args.iterations)
     run("train-initial", out / "prepared", out / "ws-own", "--frames", even, *iterations, "--force")
     run("evaluate", out / "ws-own", "--test", out / "truth-test", "--frames", odd, "--refine-poses")
-    run("train-initial", train, out / "ws-exact", "--frames", even, "--body-shape", "exact", *iterations, "--force")
-    run("evaluate", out / "ws-exact", "--test", train, "--frames", odd)
-    own, exact = scores(out / "ws-own", out / "truth-test"), scores(out / "ws-exact", train)
+    references = {"video-exact": ("the video's frames and masks", True, True)}
+    if args.split:
+        references |= {"video-images": ("the video's frames, exact masks", True, False),
+                       "video-masks": ("the sample's frames, prepare's masks", False, True)}  # fmt: skip
+    for name, (_, video_images, video_masks) in references.items():
+        exact_pose_folder(train, out / "prepared", out / name, video_images, video_masks)
+    folders = [(out / name, out / f"ws-{name}") for name in references] + [(train, out / "ws-exact")]
+    for folder, workspace in folders:
+        run("train-initial", folder, workspace, "--frames", even, "--body-shape", "exact", *iterations, "--force")
+        run("evaluate", workspace, "--test", train, "--frames", odd)
+    own = scores(out / "ws-own", out / "truth-test")
     rows = [
         ("own video, given poses", out / "ws-own", own["mean"]),
         ("own video, refined poses", out / "ws-own", own["refined_poses"]["mean"]),
-        ("exact poses, exact body", out / "ws-exact", exact["mean"]),
-    ]
+        *[(f"{label}, exact poses and body", out / f"ws-{name}", scores(out / f"ws-{name}", train)["mean"])
+          for name, (label, _, _) in references.items()],
+        ("the sample's frames, exact poses and body", out / "ws-exact", scores(out / "ws-exact", train)["mean"]),
+    ]  # fmt: skip
     print("| path | IoU | PSNR (dB) | SSIM | Gaussians | > 3 cm |\n|---|---:|---:|---:|---:|---:|")
     for label, workspace, mean in rows:
         count, shares = long_shares(open_workspace(workspace).require_avatar())
         print(f"| {label} | {mean['iou']:.3f} | {mean['psnr']:.2f} | {mean['ssim']:.4f} | {count:,} | {100 * shares[0]:.2f} % |")
+    print(f"the video's decoded frames inside the person: {decoded_psnr(train, out / 'prepared'):.2f} dB from the true ones")
     training = FrameRange(0, frames - 1, 2)
     for name, errors in joint_errors(train, out / "prepared", out / "ws-own", training).items():
         worst = int(errors.argmax())

@@ -127,7 +127,8 @@ def _evaluate(
 
 def refined_test_poses(avatar: Avatar, test: VideoDataset, progress: bool) -> tuple[torch.Tensor, torch.Tensor]:
     """The test frames' poses (T, 24, 3) and translations (T, 3) fitted to their masks, then to their images,
-    with the avatar fixed (training/pose_fit.py).
+    with the avatar fixed (training/pose_fit.py); each frame's image fit starts from its given pose or its mask
+    fit, whichever matches its image better.
 
     Each frame is fitted on its own, without the smoothness along the video that the training fit uses: held-out
     frames need not be a clip sampled densely enough for it (the synthetic subjects' held-out motion moves
@@ -137,8 +138,7 @@ def refined_test_poses(avatar: Avatar, test: VideoDataset, progress: bool) -> tu
                   console=Console(stderr=True), transient=True, disable=not progress) as bar:  # fmt: skip
         task = bar.add_task("masks", total=config.steps + len(test))
         to_masks = fit_poses_to_masks(test, SkinnedPoints.of_avatar(avatar, config.points), config, lambda: bar.advance(task))
-        fitted = VideoDataset(**{**vars(test), "body_pose": to_masks.body_pose, "transl": to_masks.transl})
-        to_images = fit_poses_to_images(avatar, fitted, on_frame=lambda: bar.advance(task))
+        to_images = fit_poses_to_images(avatar, test, on_frame=lambda: bar.advance(task), other_start=to_masks)
     return to_images.body_pose, to_images.transl
 
 

@@ -165,22 +165,37 @@ class ImagePoseConfig:
 
 
 def fit_poses_to_images(
-    avatar: Avatar, video: VideoDataset, config: ImagePoseConfig | None = None, on_frame: Callable[[], None] | None = None
+    avatar: Avatar,
+    video: VideoDataset,
+    config: ImagePoseConfig | None = None,
+    on_frame: Callable[[], None] | None = None,
+    other_start: PoseFit | None = None,
 ) -> PoseFit:
     """Each frame's pose and translation moved so the avatar's render (on white) matches the frame's image
     (its person composited on white) and its alpha the mask, one frame at a time, from the video's poses.
-    The avatar stays fixed; on_frame: called after each frame (progress)."""
+    The avatar stays fixed; on_frame: called after each frame (progress).
+
+    other_start: other poses (T, 24, 3) and translations (T, 3) for the same frames, e.g. `fit_poses_to_masks`'s;
+    each frame then starts from whichever of its two poses the image error prefers. A mask fit puts right whole
+    limbs that a pose estimator got wrong, but where the mask leaves a limb free (over the torso) it also moves
+    limbs that were right: from exact poses it loses 9 dB that this fit wins back only in part."""
     config = config or ImagePoseConfig()
     factor = max(1, round(max(video.camera.width, video.camera.height) / config.resolution))
     camera = downscaled_camera(video.camera, factor)
-    white = torch.ones(3)
     poses, transls, losses, start_losses = [], [], [], []
     trainable = [parameter for parameter in avatar.params.values() if parameter.requires_grad]
     for parameter in trainable:  # the avatar stays as it is: no gradients for it
         parameter.requires_grad_(False)
     try:
         for t in range(len(video)):
-            fit = _fit_frame(avatar, video, t, camera, white, config)
+            frame = _FrameTarget.of(video, t, camera, avatar.device)
+            body_pose, transl = video.body_pose[t], video.transl[t]
+            if other_start is not None:
+                with torch.no_grad():
+                    errors = [frame.error(avatar, *start, config.mask_weight) for start in ((body_pose, transl), (other_start.body_pose[t], other_start.transl[t]))]
+                    if errors[1] < errors[0]:
+                        body_pose, transl = other_start.body_pose[t], other_start.transl[t]
+            fit = _fit_frame(avatar, frame, body_pose, transl, config)
             poses.append(fit.body_pose)
             transls.append(fit.transl)
             losses.append(fit.loss)
@@ -193,12 +208,31 @@ def fit_poses_to_images(
     return PoseFit(torch.stack(poses), torch.stack(transls), statistics.fmean(losses), statistics.fmean(start_losses))
 
 
-def _fit_frame(avatar: Avatar, video: VideoDataset, t: int, camera: Camera, white: torch.Tensor, config: ImagePoseConfig) -> PoseFit:
-    """Frame t's pose (24, 3) and translation (3,) fitted to its image at `camera`'s size."""
-    mask = F.interpolate(video.masks[t].float()[None, None], size=(camera.height, camera.width), mode="area")[0, 0]
-    image = F.interpolate(video.images[t].permute(2, 0, 1)[None], size=(camera.height, camera.width), mode="area")[0]
-    target = (image.permute(1, 2, 0) * mask[..., None] + (1.0 - mask[..., None])).to(avatar.device)
-    mask = mask.to(avatar.device)
+@dataclass
+class _FrameTarget:
+    """One frame at the fit's size: its image composited on white (H, W, 3) and its mask (H, W) as coverage."""
+
+    camera: Camera
+    target: torch.Tensor
+    mask: torch.Tensor
+
+    @classmethod
+    def of(cls, video: VideoDataset, t: int, camera: Camera, device: torch.device) -> _FrameTarget:
+        size = (camera.height, camera.width)
+        mask = F.interpolate(video.masks[t].float()[None, None], size=size, mode="area")[0, 0]
+        image = F.interpolate(video.images[t].permute(2, 0, 1)[None], size=size, mode="area")[0]
+        target = image.permute(1, 2, 0) * mask[..., None] + (1.0 - mask[..., None])
+        return cls(camera, target.to(device), mask.to(device))
+
+    def error(self, avatar: Avatar, body_pose: torch.Tensor, transl: torch.Tensor, mask_weight: float) -> torch.Tensor:
+        """Mean absolute colour error of the avatar's render on white plus `mask_weight` times that of its alpha
+        against the mask, at pose (24, 3) and translation (3,)."""
+        out = render_avatar(avatar, body_pose, transl, self.camera, torch.ones(3))
+        return (out.image - self.target).abs().mean() + mask_weight * (out.alpha - self.mask).abs().mean()
+
+
+def _fit_frame(avatar: Avatar, frame: _FrameTarget, body_pose: torch.Tensor, transl: torch.Tensor, config: ImagePoseConfig) -> PoseFit:
+    """The pose (24, 3) and translation (3,) near the given ones that best match `frame`."""
     pose_offset = torch.zeros(24, 3, requires_grad=True)
     transl_offset = torch.zeros(3, requires_grad=True)
     optimizer = torch.optim.Adam(
@@ -206,10 +240,8 @@ def _fit_frame(avatar: Avatar, video: VideoDataset, t: int, camera: Camera, whit
     )
 
     def error() -> torch.Tensor:
-        out = render_avatar(avatar, video.body_pose[t] + pose_offset, video.transl[t] + transl_offset, camera, white)
-        colour = (out.image - target).abs().mean()
         prior = (pose_offset / 0.1).square().mean() + (transl_offset / 0.05).square().mean()
-        return colour + config.mask_weight * (out.alpha - mask).abs().mean() + config.prior * prior
+        return frame.error(avatar, body_pose + pose_offset, transl + transl_offset, config.mask_weight) + config.prior * prior
 
     start_loss = 0.0
     for step in range(config.steps):
@@ -220,5 +252,4 @@ def _fit_frame(avatar: Avatar, video: VideoDataset, t: int, camera: Camera, whit
         optimizer.step()
     with torch.no_grad():
         loss = float(error())
-    return PoseFit(video.body_pose[t] + pose_offset.detach(), video.transl[t] + transl_offset.detach(), loss, start_loss)
-
+    return PoseFit(body_pose + pose_offset.detach(), transl + transl_offset.detach(), loss, start_loss)
