@@ -47,8 +47,8 @@ demo: install
 	$(BIN)/avatarperfect render $(DEMO)/ws --motion examples/motions/walk.npz -o $(DEMO)/walk.mp4 --force
 
 bench: install
-	$(BIN)/python benchmarks/rasterizer.py
-	$(BIN)/python benchmarks/sh.py
+	$(BIN)/python -m benchmarks.rasterizer
+	$(BIN)/python -m benchmarks.sh
 
 # The full reliability run: the damaged-input corpus, and KILLS random kills (SIGINT, SIGTERM, SIGKILL) of every
 # workspace-writing stage (tests/reliability); the counts go to out/reliability-kills.json and docs/reliability.md.

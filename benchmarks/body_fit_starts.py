@@ -3,7 +3,7 @@
 phenotype held (only the skeleton correction and the offset fitted), on a synthetic sample whose truth is
 known (docs/body-fit.md).
 
-    python benchmarks/body_fit_starts.py SAMPLE/train
+    python -m benchmarks.body_fit_starts SAMPLE/train
 
 SAMPLE/train is a `make-sample` training folder (its subject.json names the phenotype). Prints one row per
 start: the fitted phenotype, the silhouette distance to the masks and the phenotype prior (pixels, the two

@@ -1,6 +1,6 @@
 """Two study runs on the same initial avatars, compared run by run (B minus A).
 
-    python benchmarks/compare_studies.py A/study.json B/study.json [--a-condition ap-exact] [--b-condition ap-exact]
+    python -m benchmarks.compare_studies A/study.json B/study.json [--a-condition ap-exact] [--b-condition ap-exact]
 
 The loop is chaotic after its first round: the same code with kernels that differ by float32 rounding moved
 a nine-run mean by 0.08 dB held out and single runs by up to 0.76 dB in the hidden regions (docs/study.md,

@@ -1,6 +1,6 @@
 """GPU against CPU, side by side in one run: the rasterizer and the stages of the loop.
 
-    python benchmarks/gpu.py SAMPLE_DIR [--repeats 10] [--stage-repeats 3] [--devices cuda,cpu] [--profile]
+    python -m benchmarks.gpu SAMPLE_DIR [--repeats 10] [--stage-repeats 3] [--devices cuda,cpu] [--profile]
 
 SAMPLE_DIR: a 512² `avatarperfect make-sample` folder (train/ and test/). Measures, on each device:
   rasterizer       forward+backward of `rasterization()` (image and alpha into a weighted sum) at 512²/30k

@@ -1,7 +1,7 @@
 """Mask error and streaks: `train-initial` on a sample's exact, dilated and eroded training masks, scored on
 its exact held-out frames, with the share of long Gaussians (docs/avatar-quality.md).
 
-    python benchmarks/mask_error.py SAMPLE OUT [--pixels 3] [--conditions exact,dilated,eroded]
+    python -m benchmarks.mask_error SAMPLE OUT [--pixels 3] [--conditions exact,dilated,eroded]
 
 SAMPLE is a `make-sample` folder (SAMPLE/train, SAMPLE/test). For a dilated or eroded condition,
 OUT/<condition>/train is a copy of SAMPLE/train whose masks are dilated or eroded by --pixels (cv2, an

@@ -1,7 +1,7 @@
 """Avatar quality on the synthetic sample: metrics on training and held-out frames, and close-ups of
 the artifacts the refinement loop has to repair.
 
-    python benchmarks/quality.py [--sample DIR] [--workspace DIR] [--figure docs/images/artifacts.png]
+    python -m benchmarks.quality [--sample DIR] [--workspace DIR] [--figure docs/images/artifacts.png]
 
 Without --sample it makes the 512² sample; without --workspace it runs train-initial (2000
 iterations). It prints a table of IoU / PSNR / SSIM and writes a figure: for the held-out frames

@@ -1,6 +1,6 @@
 """Rasterizer speed on the CPU: forward and forward+backward, the dense reference, JIT start-up.
 
-    python benchmarks/rasterizer.py [--repeats 9] [--skip-reference] [--skip-jit]
+    python -m benchmarks.rasterizer [--repeats 9] [--skip-reference] [--skip-jit]
 
 Scene: N Gaussians on the surface of a human-sized figure (1.75 m tall, capsules for torso, head,
 arms and legs) seen from 3 m, with flat disc-like Gaussians sized so that neighbours overlap, i.e.

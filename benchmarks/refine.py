@@ -1,6 +1,6 @@
 """refine on the synthetic sample: speed, one colour edit, one background edit (issue 8's measurements).
 
-    python benchmarks/refine.py WORKSPACE SAMPLE_DIR [--images docs/images]
+    python -m benchmarks.refine WORKSPACE SAMPLE_DIR [--images docs/images]
 
 WORKSPACE: a workspace trained on SAMPLE_DIR/train (e.g. `make demo`'s after train-initial). On a copy:
   colour edit:     the current avatar's suggestion, the simulated user (its default budget: 15% of the

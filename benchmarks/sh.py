@@ -1,6 +1,6 @@
 """SH colour evaluation on the CPU: the numba kernels against the dense torch `eval_sh`, side by side.
 
-    python benchmarks/sh.py [--repeats 31]
+    python -m benchmarks.sh [--repeats 31]
 
 Forward + backward (gradients to the coefficients and the directions, as a training step asks) of N
 Gaussians' colours; the two versions alternate call by call, so the ratio is robust to this VM's drift.

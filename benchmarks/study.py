@@ -1,6 +1,6 @@
 """The paper's user study (Table 2), reproduced with a simulated user on synthetic subjects.
 
-    python benchmarks/study.py OUT_DIR [--presets default female tall] [--rounds 5] [--resolution 512]
+    python -m benchmarks.study OUT_DIR [--presets default female tall] [--rounds 5] [--resolution 512]
                                [--conditions initial ap-exact ...] [--seeds 0 1 2] [--body fit|exact]
                                [--pose-noise DEG]
 

@@ -1,6 +1,6 @@
 """A finished study's avatars scored with their test poses refined, beside the exact test poses.
 
-    python benchmarks/study_refined.py OUT [--presets default female tall] [--seeds 0 1]
+    python -m benchmarks.study_refined OUT [--presets default female tall] [--seeds 0 1]
                                            [--conditions initial ap-exact random canonical]
 
 OUT: a `benchmarks/study.py` folder (OUT/PRESET/sample, OUT/PRESET/seed-S/CONDITION). Each condition's final

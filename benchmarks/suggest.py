@@ -1,6 +1,6 @@
 """Suggestion quality and speed on the synthetic sample (issue 7's measurements).
 
-    python benchmarks/suggest.py WORKSPACE SAMPLE_DIR [--images docs/images] [--seeds 50]
+    python -m benchmarks.suggest WORKSPACE SAMPLE_DIR [--images docs/images] [--seeds 50]
 
 WORKSPACE: a workspace trained on SAMPLE_DIR/train (e.g. `make demo`'s demo/ws after train-initial).
 Prints tables of

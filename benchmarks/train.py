@@ -1,6 +1,6 @@
 """Training speed on the CPU: steps per second at 512² with ~30k Gaussians, and train-initial's wall time.
 
-    python benchmarks/train.py [--steps 40] [--sample DIR] [--iterations 2000]
+    python -m benchmarks.train [--steps 40] [--sample DIR] [--iterations 2000]
 
 The step benchmark fits the anny template, doubled to ~27k Gaussians by a jittered copy of each,
 to 512² frames of the sample subject: skinning (LBS), rasterization, L1 + SSIM on the subject's box,

@@ -2,7 +2,7 @@
 the suggested joint angles, or as a person would (the subject posed where the avatar's skeleton stands, a
 displacement of a few pixels overlooked).
 
-    python benchmarks/user_judgement.py OUT FIGURE.png [--seed 0] [--condition ap-exact] [--views default:001 tall:001]
+    python -m benchmarks.user_judgement OUT FIGURE.png [--seed 0] [--condition ap-exact] [--views default:001 tall:001]
 
 OUT: a finished `benchmarks/study.py` folder. For each PRESET:NNN, suggestion NNN of that subject's condition
 workspace, one row at half size: the suggestion; the subject in the suggested joint angles on its own
