@@ -68,23 +68,15 @@ def write_video(train: Path, output: Path) -> None:
             write(torch.where(mask[..., None], image, scene))
 
 
-def truth_test_folder(sample_train: Path, prepared: Path, out: Path) -> None:
-    """The prepared folder's camera and poses with the sample's true images and masks."""
-    truth = load_people_snapshot(sample_train, downscale=1)
-    estimate = load_people_snapshot(prepared, downscale=1)
-    if not torch.equal(truth.frame_ids, estimate.frame_ids):
-        raise SystemExit(f"{prepared} has frames {estimate.frame_ids.tolist()}, the video {len(truth)}")
-    images = (truth.images.numpy() * 255.0).round().astype(np.uint8)
-    write_people_snapshot(out, images, truth.masks.numpy(), estimate.body_pose, estimate.transl, estimate.camera, subject=estimate.subject)
-
-
-def exact_pose_folder(sample_train: Path, prepared: Path, out: Path, video_images: bool = True, video_masks: bool = True) -> None:
-    """The sample's camera, poses and subject with the prepared folder's images and masks (else the sample's)."""
-    truth = load_people_snapshot(sample_train, downscale=1)
-    video = load_people_snapshot(prepared, downscale=1)
-    images = ((video if video_images else truth).images.numpy() * 255.0).round().astype(np.uint8)
-    masks = (video if video_masks else truth).masks.numpy()
-    write_people_snapshot(out, images, masks, truth.body_pose, truth.transl, truth.camera, subject=truth.subject)
+def mixed_folder(sample_train: Path, prepared: Path, out: Path, images_from: str, masks_from: str, poses_from: str) -> None:
+    """A folder of the same frames with images, masks and camera + poses + subject each taken from the
+    sample ("truth") or the prepared folder ("video"); refuses a prepared folder missing frames."""
+    sources = {"truth": load_people_snapshot(sample_train, downscale=1), "video": load_people_snapshot(prepared, downscale=1)}
+    if not torch.equal(sources["truth"].frame_ids, sources["video"].frame_ids):
+        raise SystemExit(f"{prepared} has frames {sources['video'].frame_ids.tolist()}, the video {len(sources['truth'])}")
+    images = (sources[images_from].images.numpy() * 255.0).round().astype(np.uint8)
+    poses = sources[poses_from]
+    write_people_snapshot(out, images, sources[masks_from].masks.numpy(), poses.body_pose, poses.transl, poses.camera, subject=poses.subject)
 
 
 def decoded_psnr(sample_train: Path, prepared: Path, inset: int = 3) -> float:
@@ -145,17 +137,17 @@ def main() -> None:
     if not (out / "prepared" / "poses.npz").is_file():
         fov = () if args.fov is None else ("--fov", str(args.fov))
         subprocess.run([*CLI, "prepare", str(out / "video.mp4"), str(out / "prepared"), *fov], check=True)
-    truth_test_folder(train, out / "prepared", out / "truth-test")  # refuses a prepared folder missing frames
+    mixed_folder(train, out / "prepared", out / "truth-test", "truth", "truth", "video")  # the truth seen through prepare's camera and poses
     run = lambda *command: subprocess.run([*CLI, *map(str, command)], check=True)  # noqa: E731
     iterations = ("--iterations", args.iterations)
     run("train-initial", out / "prepared", out / "ws-own", "--frames", even, *iterations, "--force")
     run("evaluate", out / "ws-own", "--test", out / "truth-test", "--frames", odd, "--refine-poses")
-    references = {"video-exact": ("the video's frames and masks", True, True)}
+    references = {"video-exact": ("the video's frames and masks", "video", "video")}
     if args.split:
-        references |= {"video-images": ("the video's frames, exact masks", True, False),
-                       "video-masks": ("the sample's frames, prepare's masks", False, True)}  # fmt: skip
-    for name, (_, video_images, video_masks) in references.items():
-        exact_pose_folder(train, out / "prepared", out / name, video_images, video_masks)
+        references |= {"video-images": ("the video's frames, exact masks", "video", "truth"),
+                       "video-masks": ("the sample's frames, prepare's masks", "truth", "video")}  # fmt: skip
+    for name, (_, images_from, masks_from) in references.items():
+        mixed_folder(train, out / "prepared", out / name, images_from, masks_from, "truth")
     folders = [(out / name, out / f"ws-{name}") for name in references] + [(train, out / "ws-exact")]
     for folder, workspace in folders:
         run("train-initial", folder, workspace, "--frames", even, "--body-shape", "exact", *iterations, "--force")
