@@ -3,7 +3,7 @@
 phenotype held (only the skeleton correction and the offset fitted), on a synthetic sample whose truth is
 known (docs/body-fit.md).
 
-    python -m benchmarks.body_fit_starts SAMPLE/train
+    python -m benchmarks.body_fit_starts SAMPLE/train [--phenotype-prior PX] [--points N]
 
 SAMPLE/train is a `make-sample` training folder (its subject.json names the phenotype). Prints one row per
 start: the fitted phenotype, the silhouette distance to the masks and the phenotype prior (pixels, the two
@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -37,6 +38,8 @@ def rest_joints(model: object, phenotype: dict[str, float]) -> torch.Tensor:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("train", type=Path)
+    parser.add_argument("--phenotype-prior", type=float, default=BodyFitConfig.phenotype_prior, help="BodyFitConfig.phenotype_prior, pixels")
+    parser.add_argument("--points", type=int, default=BodyFitConfig.points, help="template points compared (BodyFitConfig.points)")
     args = parser.parse_args()
     video = load_people_snapshot(args.train)
     truth = json.loads((args.train / "subject.json").read_text())["phenotype"]
@@ -46,11 +49,11 @@ def main() -> None:
     # A start at the subject's own body lands on the masks with no offset: the fit's offset follows the rest
     # root from anny's middle body's, so the initial offset is the two roots' difference.
     own_offset = true_joints[0] - rest_joints(model, middle)[0]
-    default = BodyFitConfig()
+    default = BodyFitConfig(phenotype_prior=args.phenotype_prior, points=args.points)
     starts = {
         "the default starts": (fit_transl_offset(build_anny_template(model, middle), video).offset, default),
-        "the subject's own, free": (own_offset, BodyFitConfig(starts=(truth,))),
-        "the subject's own, held": (own_offset, BodyFitConfig(starts=(truth,), start_steps=1, phenotype_rate=0.0)),
+        "the subject's own, free": (own_offset, replace(default, starts=(truth,))),
+        "the subject's own, held": (own_offset, replace(default, starts=(truth,), start_steps=1, phenotype_rate=0.0)),
     }
     print(f"subject: {', '.join(f'{name} {truth[name]:.2f}' for name in PHENOTYPES)}")
     print(f"| start | fitted {', '.join(PHENOTYPES)} | silhouette (px) | prior (px) | rest joints | hips | knees |")
