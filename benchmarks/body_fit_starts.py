@@ -3,12 +3,15 @@
 phenotype held (only the skeleton correction and the offset fitted), on a synthetic sample whose truth is
 known (docs/body-fit.md).
 
-    python -m benchmarks.body_fit_starts SAMPLE/train [--phenotype-prior PX] [--points N]
+    python -m benchmarks.body_fit_starts SAMPLE/train [--phenotype-prior PX] [--points N] [--poses]
 
 SAMPLE/train is a `make-sample` training folder (its subject.json names the phenotype). Prints one row per
 start: the fitted phenotype, the silhouette distance to the masks and the phenotype prior (pixels, the two
 terms the fit trades), the fitted rest joints' mean distance from the subject's, and how far the posed
 hips and knees sit above (+) or below (-) the subject's, in the world, centimetres (left and right averaged).
+Then the loss each default start was compared by (`BodyFit.start_losses`). `--poses` fits every frame's pose
+with the body, as `train-initial --refine-poses` does for estimated poses (a folder such as the study's
+`train-noisy`; its subject.json is the sample's), and the starts are compared with their poses corrected.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from avatarperfect_cli.body.anny_model import PHENOTYPES, anny_shape, build_anny
 from avatarperfect_cli.body.base import joint_displacements
 from avatarperfect_cli.datasets import load_people_snapshot
 from avatarperfect_cli.training.body_fit import BodyFitConfig, fit_body
+from avatarperfect_cli.training.pose_fit import PoseFitConfig
 from avatarperfect_cli.training.template_offset import fit_transl_offset
 
 HIPS, KNEES = (1, 2), (4, 5)
@@ -40,6 +44,7 @@ def main() -> None:
     parser.add_argument("train", type=Path)
     parser.add_argument("--phenotype-prior", type=float, default=BodyFitConfig.phenotype_prior, help="BodyFitConfig.phenotype_prior, pixels")
     parser.add_argument("--points", type=int, default=BodyFitConfig.points, help="template points compared (BodyFitConfig.points)")
+    parser.add_argument("--poses", action="store_true", help="fit every frame's pose with the body (estimated poses)")
     args = parser.parse_args()
     video = load_people_snapshot(args.train)
     truth = json.loads((args.train / "subject.json").read_text())["phenotype"]
@@ -58,8 +63,10 @@ def main() -> None:
     print(f"subject: {', '.join(f'{name} {truth[name]:.2f}' for name in PHENOTYPES)}")
     print(f"| start | fitted {', '.join(PHENOTYPES)} | silhouette (px) | prior (px) | rest joints | hips | knees |")
     print("|---|---|---|---|---|---|---|")
+    compared = ()
     for name, (initial_offset, config) in starts.items():
-        fit = fit_body(video, initial_offset, config, anny_model=model)
+        fit = fit_body(video, initial_offset, config, anny_model=model, poses=PoseFitConfig() if args.poses else None)
+        compared = compared or fit.start_losses
         joints = rest_joints(model, fit.phenotype) + joint_displacements(fit.bone_offsets)
         height = (joints + fit.transl_offset - true_joints)[:, 1] * 100
         values = torch.tensor([fit.phenotype[key] for key in PHENOTYPES])
@@ -69,6 +76,7 @@ def main() -> None:
             f"| {(joints - true_joints).norm(dim=-1).mean() * 100:.2f} cm | {height[list(HIPS)].mean():+.2f} cm "
             f"| {height[list(KNEES)].mean():+.2f} cm |"
         )
+    print(f"the default starts ({len(compared)}) compared at {', '.join(f'{loss:.4f}' for loss in compared)} px")
 
 
 if __name__ == "__main__":

@@ -199,7 +199,7 @@ def _fit_body(
     the video's poses are fitted together with the body and replace its own, in place (the translations
     without the offset)."""
     config, poses = BodyFitConfig(), PoseFitConfig() if with_poses else None
-    steps = (len(config.starts) if anny is not None else 1) * config.start_steps + config.shape_steps
+    steps = config.steps(len(config.starts) if anny is not None else 1, with_poses)
     clock = time.perf_counter()
     with Progress(TextColumn("[bold]fitting the body" + (" and the poses" if with_poses else "")), BarColumn(),
                   MofNCompleteColumn(), TimeElapsedColumn(), console=Console(stderr=True), transient=True,

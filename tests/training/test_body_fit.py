@@ -114,6 +114,32 @@ def test_body_and_noisy_poses_fitted_together_land_near_the_true_posed_joints() 
     assert together.body_pose.shape == video.body_pose.shape and together.transl.shape == video.transl.shape
 
 
+def test_with_noisy_poses_the_starts_are_compared_with_their_poses_corrected() -> None:
+    """With poses 3 degrees off, the starts are compared by their silhouette distance after the compared frames'
+    poses are fitted too: far below what the same bodies reach on the poses as given (the start phase's own loss,
+    seen in a fit without poses), and the start with the lower of those distances is continued exactly as a fit
+    from it alone."""
+    from avatarperfect_cli.sample.motions import Motion, with_estimation_noise
+    from avatarperfect_cli.training.pose_fit import PoseFitConfig
+
+    video = load_people_snapshot(SAMPLE, FrameRange(0, 39, 1), downscale=1)
+    noisy_motion = with_estimation_noise(Motion(video.body_pose.numpy(), video.transl.numpy()), 3.0, seed=1)
+    noisy = VideoDataset(**{**vars(video), "body_pose": torch.as_tensor(noisy_motion.body_pose, dtype=video.body_pose.dtype),
+                            "transl": torch.as_tensor(noisy_motion.transl, dtype=video.transl.dtype)})  # fmt: skip
+    anny = load_anny_model(default_cache_dir(), progress=False)
+    poses = PoseFitConfig(resolution=96, points=800, contour_pixels=150)
+    config = replace(QUICK, starts=({}, {"gender": 1.0, "height": 0.1}), pick_steps=40, shape_steps=20)
+    both = fit_body(noisy, torch.zeros(3), config, anny_model=anny, poses=poses)
+    as_given = fit_body(noisy, torch.zeros(3), replace(config, shape_steps=1), anny_model=anny)
+    alone = [fit_body(noisy, torch.zeros(3), replace(config, starts=(start,)), anny_model=anny, poses=poses) for start in config.starts]
+    assert len(both.start_losses) == len(as_given.start_losses) == 2
+    assert all(corrected < 0.5 * given for corrected, given in zip(both.start_losses, as_given.start_losses)), (both.start_losses, as_given.start_losses)
+    assert alone[0].phenotype != alone[1].phenotype
+    winner = alone[min(range(2), key=lambda index: both.start_losses[index])]
+    assert both.phenotype == winner.phenotype
+    assert both.loss == pytest.approx(winner.loss, rel=1e-6)
+
+
 def _posed_joints(template, body_pose: torch.Tensor, transl: torch.Tensor) -> torch.Tensor:
     """(T, 24, 3) joints of `template` posed by body_pose (T, 24, 3) and transl (T, 3), metres."""
     from avatarperfect_cli.body import forward_kinematics
