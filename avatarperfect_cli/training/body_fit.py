@@ -16,11 +16,11 @@ follows the root: a phenotype that moves the rest root by d moves every frame's 
 the body grows and shrinks about the place where the video's translations put its pelvis instead of
 about its feet, which the offset would otherwise have to chase (tens of centimetres for a tall body).
 The fit starts from a few phenotypes (the middle, a more male, a more female and an older body) and continues
-the best. With estimated poses the starts are compared only after each has also fitted the compared frames'
-poses for a few steps (on a copy): on poses 3 degrees off the start phase's distance is mostly the poses'
-error (about 1.6 px against 0.1 px once they are corrected), and the body that best fits the wrong poses can
-be the wrong body.
-With estimated poses (`poses` given) the best start continues over every frame with each frame's pose fitted
+the best.
+With estimated poses (`poses` given) the starts are compared only after each has also fitted the compared
+frames' poses for a few steps (on a copy): on poses 3 degrees off the start phase's distance is mostly the
+poses' error (about 1.6 px against 0.1 px once they are corrected), and the body that best fits the wrong
+poses can be the wrong body. The best start then continues over every frame with each frame's pose fitted
 at the same time (`pose_fit.PoseOffsets`: smooth along the video, near the given pose, averaging to zero
 over the video): a pose estimator's errors differ from frame to frame and the body is the same in all, so
 what every frame shares goes to the body and the offset, and the fit cannot bend a bone to absorb one
@@ -281,9 +281,6 @@ def fit_body(
         with torch.no_grad():
             return float(loss_of(shape, on, with_bones)[0])
 
-    with torch.no_grad():
-        subset.shape_near.linearise(torch.full((len(PHENOTYPES),), 0.5))
-        start_loss = float(loss_of(_BodyShape({}), subset, False)[1])
     def corrected_distance(shape: _BodyShape) -> float:
         """The silhouette distance of a copy of `shape` after `pick_steps` with the subset's poses fitted too."""
         trial, offsets = copy.deepcopy(shape), PoseOffsets(video.frame_ids[frames], poses, zero_mean=True)
@@ -292,6 +289,9 @@ def fit_body(
         with torch.no_grad():
             return float(loss_of(trial, on, False)[1])
 
+    with torch.no_grad():
+        subset.shape_near.linearise(torch.full((len(PHENOTYPES),), 0.5))
+        start_loss = float(loss_of(_BodyShape({}), subset, False)[1])
     candidates = []
     for start in starts:
         shape = _BodyShape(start)
