@@ -203,6 +203,10 @@ def train_initial(
     ),  # fmt: skip
     sh_degree: int = typer.Option(1, help="Spherical-harmonics degree of the colours (0 to 3)."),
     seed: int = typer.Option(0, help="Random seed."),
+    max_gaussians: int = typer.Option(
+        30_000, help="Densification stops growing the avatar at this many Gaussians (at 512², more trains slower "
+        "and scores the same held out; a larger video may want more).",
+    ),  # fmt: skip
     refine_poses: Optional[bool] = typer.Option(
         None, "--refine-poses/--no-refine-poses", help="Correct estimated poses: fit each frame's pose to its mask (keeping "
         "the motion smooth), then refine it with the avatar against the image. Default: on when the dataset says its "
@@ -223,12 +227,13 @@ def train_initial(
     _require_in_range("--iterations", iterations, 1)
     _require_in_range("--resolution", resolution, MIN_RESOLUTION)
     _require_in_range("--sh-degree", sh_degree, 0, 3)
+    _require_in_range("--max-gaussians", max_gaussians, 1)
     check_writable_folder(workspace)
     if body_shape not in BODY_SHAPES:
         raise AvatarPerfectError(f"--body-shape '{body_shape}' is not one of {', '.join(BODY_SHAPES)}")
     body = BodySettings(body_model, smpl_model_dir, parse_transl_offset(transl_offset), body_shape)
     video = VideoSettings(_frame_range(frames), resolution, poses)
-    fit = InitialFit(video, body, iterations, sh_degree, seed, refine_poses, torch_device)
+    fit = InitialFit(video, body, iterations, sh_degree, seed, refine_poses, torch_device, max_gaussians)
     run(dataset, workspace, fit, force)
 
 

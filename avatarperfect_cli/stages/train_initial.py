@@ -25,6 +25,7 @@ from avatarperfect_cli.training.body_fit import BodyFitConfig, fit_body, fit_pic
 from avatarperfect_cli.training.pose_fit import PoseFitConfig, fit_poses_to_masks
 from avatarperfect_cli.training.pose_refinement import PoseRefiner
 from avatarperfect_cli.training.silhouette import SkinnedPoints, check_masks
+from avatarperfect_cli.training.strategy import DensifyConfig
 from avatarperfect_cli.training.template_offset import OffsetSearch, fit_transl_offset
 from avatarperfect_cli.training.trainer import TrainConfig, train, video_views
 
@@ -152,6 +153,8 @@ class InitialFit:
             return self.refine_poses
         return "poses" in (video.subject or {}).get("estimated", [])
     device: torch.device = CPU
+    # densification stops growing the avatar at this many Gaussians (`DensifyConfig.max_gaussians`)
+    max_gaussians: int = field(default_factory=lambda: DensifyConfig().max_gaussians)
 
 
 def train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool = False, progress: bool = True) -> Path:
@@ -270,6 +273,7 @@ def _train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool,
     avatar = Avatar.from_template(template, sh_degree=fit.sh_degree, body_model=body_model).to(fit.device)
     console.print(f"fitting {len(avatar):,} Gaussians to {len(video)} frames of {video.camera.width}x{video.camera.height}")
     config = TrainConfig(iterations=fit.iterations, seed=fit.seed)
+    config.densify.max_gaussians = fit.max_gaussians
     config.learning_rates.total_steps = fit.iterations
     refiner = PoseRefiner(len(video), device=fit.device) if refine_poses else None
     start = time.perf_counter()

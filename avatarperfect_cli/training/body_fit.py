@@ -65,6 +65,9 @@ class BodyFitConfig:
     pick_steps:      with estimated poses, steps of each start (a copy) with the compared frames' poses fitted
                      too before the starts are compared by their silhouette distance
     shape_steps:     steps of the best start with the skeleton correction added
+    shape_steps_with_poses: the same with estimated poses, where every frame's pose is fitted too and the body
+                     converges slower (the custom subject's noisy video, docs/body-fit.md: 200 steps left its rest
+                     joints 0.82 cm from the truth, 400 steps 0.53 cm; with the poses given, 400 steps gain 0.02-0.3 cm)
     relinearise_every: steps between anny forward passes (the template is linear in the phenotype between)
     phenotype_rate:  Adam step on the phenotype logits; offset_rate, bone_rate: metres
     phenotype_prior: loss (pixels) of a value 0.5 from the middle, growing with its square
@@ -78,8 +81,9 @@ class BodyFitConfig:
     contour_pixels: int = 400
     starts: tuple[dict[str, float], ...] = field(default_factory=lambda: ({}, {"gender": 0.15}, {"gender": 0.85}, {"age": 0.85}))
     start_steps: int = 80
-    pick_steps: int = 60
+    pick_steps: int = 30
     shape_steps: int = 200
+    shape_steps_with_poses: int = 400
     phenotype_rate: float = 0.04
     offset_rate: float = 0.003
     bone_rate: float = 0.002
@@ -91,7 +95,7 @@ class BodyFitConfig:
     def steps(self, starts: int, with_poses: bool) -> int:
         """Optimisation steps of a fit from `starts` starts (the count `fit_body`'s on_step sees)."""
         picking = self.pick_steps if with_poses and starts > 1 else 0
-        return starts * (self.start_steps + picking) + self.shape_steps
+        return starts * (self.start_steps + picking) + (self.shape_steps_with_poses if with_poses else self.shape_steps)
 
 
 @dataclass
@@ -298,7 +302,7 @@ def fit_body(
         loss = optimise(shape, subset, config.start_steps, False)
         candidates.append((corrected_distance(shape) if poses is not None and len(starts) > 1 else loss, shape))
     best = min(candidates, key=lambda candidate: candidate[0])[1]
-    optimise(best, whole, config.shape_steps, True)
+    optimise(best, whole, config.shape_steps if poses is None else config.shape_steps_with_poses, True)
     with torch.no_grad():
         loss = float(loss_of(best, whole, True)[1])
         phenotype = {name: round(float(value), PHENOTYPE_DECIMALS) for name, value in zip(PHENOTYPES, best.phenotype())}

@@ -54,6 +54,19 @@ def test_interrupted_training_leaves_nothing(tmp_path: Path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_the_gaussian_cap_reaches_the_densification(tmp_path: Path, monkeypatch):
+    caps = []
+
+    def recorded(*args, config, **kwargs):
+        caps.append(config.densify.max_gaussians)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(train_initial_stage, "train", recorded)
+    invoke("train-initial", SAMPLE / "train", tmp_path / "ws", *TRAIN_ARGS, "--max-gaussians", "1234")
+    invoke("train-initial", SAMPLE / "train", tmp_path / "ws", *TRAIN_ARGS)
+    assert caps == [1234, 30_000]
+
+
 def test_bad_dataset_is_one_line(tmp_path: Path):
     result = invoke("train-initial", tmp_path / "nowhere", tmp_path / "ws", *TRAIN_ARGS)
     assert result.exit_code == 2 and len(result.stderr.strip().splitlines()) == 1

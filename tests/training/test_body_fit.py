@@ -18,7 +18,8 @@ from avatarperfect_cli.training.body_fit import BodyFitConfig, fit_body, fit_pic
 from avatarperfect_cli.training.silhouette import silhouettes
 
 SAMPLE = Path(__file__).resolve().parents[2] / "examples" / "sample" / "train"
-QUICK = BodyFitConfig(frames=8, resolution=96, points=1500, contour_pixels=200, starts=({},), start_steps=40, shape_steps=60)
+QUICK = BodyFitConfig(frames=8, resolution=96, points=1500, contour_pixels=200, starts=({},), start_steps=40, shape_steps=60,
+                      shape_steps_with_poses=60)  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -97,7 +98,7 @@ def test_body_and_noisy_poses_fitted_together_land_near_the_true_posed_joints() 
                             "transl": torch.as_tensor(noisy_motion.transl, dtype=video.transl.dtype)})  # fmt: skip
     anny = load_anny_model(default_cache_dir(), progress=False)
     poses = PoseFitConfig(resolution=192, points=1500, contour_pixels=200)
-    together = fit_body(noisy, torch.zeros(3), replace(QUICK, shape_steps=150), anny_model=anny, poses=poses)
+    together = fit_body(noisy, torch.zeros(3), replace(QUICK, shape_steps_with_poses=150), anny_model=anny, poses=poses)
     alone = fit_body(noisy, torch.zeros(3), QUICK, anny_model=anny)
     truth_body = load_body_template("anny", phenotype=video.subject["phenotype"])
     truth = _posed_joints(truth_body, video.body_pose, video.transl)
@@ -128,7 +129,7 @@ def test_with_noisy_poses_the_starts_are_compared_with_their_poses_corrected() -
                             "transl": torch.as_tensor(noisy_motion.transl, dtype=video.transl.dtype)})  # fmt: skip
     anny = load_anny_model(default_cache_dir(), progress=False)
     poses = PoseFitConfig(resolution=96, points=800, contour_pixels=150)
-    config = replace(QUICK, starts=({}, {"gender": 1.0, "height": 0.1}), pick_steps=40, shape_steps=20)
+    config = replace(QUICK, starts=({}, {"gender": 1.0, "height": 0.1}), pick_steps=40, shape_steps_with_poses=20)
     both = fit_body(noisy, torch.zeros(3), config, anny_model=anny, poses=poses)
     as_given = fit_body(noisy, torch.zeros(3), replace(config, shape_steps=1), anny_model=anny)
     alone = [fit_body(noisy, torch.zeros(3), replace(config, starts=(start,)), anny_model=anny, poses=poses) for start in config.starts]
@@ -146,3 +147,18 @@ def _posed_joints(template, body_pose: torch.Tensor, transl: torch.Tensor) -> to
 
     transforms = forward_kinematics(body_pose.float(), template.rest_joints.float(), transl.float())
     return (transforms[..., :3, :3] @ template.rest_joints.float()[:, :, None] + transforms[..., :3, 3:])[..., 0]
+
+
+@pytest.mark.parametrize("with_poses", [False, True])
+def test_the_fit_takes_the_steps_its_config_counts(video: VideoDataset, with_poses: bool) -> None:
+    """The stage's progress bar is sized by `BodyFitConfig.steps`: the fit calls on_step exactly that often, with
+    the shape phase's own length for given and for estimated poses."""
+    from avatarperfect_cli.training.pose_fit import PoseFitConfig
+
+    config = BodyFitConfig(frames=4, resolution=48, points=300, contour_pixels=50, starts=({}, {"gender": 0.8}),
+                           start_steps=3, pick_steps=2, shape_steps=5, shape_steps_with_poses=7)  # fmt: skip
+    poses = PoseFitConfig(resolution=48, points=300, contour_pixels=50) if with_poses else None
+    calls = []
+    anny = load_anny_model(default_cache_dir(), progress=False)
+    fit_body(video, torch.zeros(3), config, anny_model=anny, poses=poses, on_step=lambda: calls.append(1))
+    assert len(calls) == config.steps(2, with_poses) == 2 * (3 + 2 * with_poses) + (7 if with_poses else 5)
