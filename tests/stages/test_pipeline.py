@@ -64,7 +64,7 @@ def test_the_gaussian_cap_reaches_the_densification(tmp_path: Path, monkeypatch)
     monkeypatch.setattr(train_initial_stage, "train", recorded)
     invoke("train-initial", SAMPLE / "train", tmp_path / "ws", *TRAIN_ARGS, "--max-gaussians", "1234")
     invoke("train-initial", SAMPLE / "train", tmp_path / "ws", *TRAIN_ARGS)
-    assert caps == [1234, 30_000]
+    assert caps == [1234, 60_000]
 
 
 def test_bad_dataset_is_one_line(tmp_path: Path):
