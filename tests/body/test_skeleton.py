@@ -392,3 +392,18 @@ def test_bone_offsets_move_joints_and_the_vertices_they_drive() -> None:
     torch.testing.assert_close(moved.rest_joints[[4, 7, 10]], offsets[4].expand(3, 3))
     torch.testing.assert_close(moved.rest_joints[[0, 1, 2, 5]], torch.zeros(4, 3))
     torch.testing.assert_close(moved.vertices, torch.tensor([[0.0, 0.0, 0.0], [0.0, -0.02, 0.0], [0.0, -0.01, 0.0]]))
+
+
+def test_skin_points_blends_each_joints_transformed_point_for_any_batch_shape() -> None:
+    """Against the definition, point by point: sum over joints of w_nj (T_j [p_n; 1]), for a (2, 3) batch."""
+    generator = torch.Generator().manual_seed(7)
+    points = torch.randn(6, 3, generator=generator, dtype=torch.float64)
+    weights = _sparse_weights(6, generator, per_point=4)
+    transforms = torch.randn(2, 3, NUM_JOINTS, 4, 4, generator=generator, dtype=torch.float64)
+    posed = skin_points(points, weights, transforms)
+    assert posed.shape == (2, 3, 6, 3)
+    for b, c, n in ((b, c, n) for b in range(2) for c in range(3) for n in range(6)):
+        homogeneous = torch.cat([points[n], torch.ones(1, dtype=torch.float64)])
+        expected = sum(weights[n, j] * (transforms[b, c, j] @ homogeneous)[:3] for j in range(NUM_JOINTS))
+        torch.testing.assert_close(posed[b, c, n], expected, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(skin_points(points, weights, transforms[1, 2]), posed[1, 2], rtol=1e-12, atol=1e-12)

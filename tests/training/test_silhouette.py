@@ -1,5 +1,5 @@
-"""The silhouette distances: the nearest-point kernel against brute force, and the distances of a posed body
-against its own masks and against moved masks."""
+"""The silhouette distances: the projection and the nearest-point kernel against independent references, and
+the distances of a posed body against its own masks and against moved masks."""
 
 from __future__ import annotations
 
@@ -10,9 +10,34 @@ import torch
 
 from avatarperfect_cli.body import forward_kinematics, load_body_template, skin_points
 from avatarperfect_cli.datasets import FrameRange, VideoDataset, load_people_snapshot
-from avatarperfect_cli.training.silhouette import _nearest_kernel, silhouette_loss, silhouettes
+from avatarperfect_cli.render import Camera
+from avatarperfect_cli.training.silhouette import _nearest_kernel, project, silhouette_loss, silhouettes
 
 SAMPLE = Path(__file__).resolve().parents[2] / "examples" / "sample" / "train"
+
+
+def _turned_camera() -> Camera:
+    """A camera turned about a tilted axis and moved, with unequal focal lengths and an off-centre principal point."""
+    axis = torch.tensor([0.3, -0.8, 0.2], dtype=torch.float64)
+    angle = 0.7
+    k = torch.tensor([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]]) / axis.norm()
+    world_to_camera = torch.eye(4, dtype=torch.float64)
+    world_to_camera[:3, :3] = torch.eye(3, dtype=torch.float64) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+    world_to_camera[:3, 3] = torch.tensor([0.1, -0.2, 3.0], dtype=torch.float64)
+    K = torch.tensor([[410.0, 0.0, 61.5], [0.0, 380.0, 47.25], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    return Camera(K=K, world_to_camera=world_to_camera, width=120, height=90)
+
+
+def test_projection_matches_a_pinhole_per_point_and_has_its_gradient() -> None:
+    camera = _turned_camera()
+    points = torch.randn(2, 7, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * 0.5
+    pixels = project(points, camera)
+    rotation, translation, K = (t.numpy() for t in (camera.world_to_camera[:3, :3], camera.world_to_camera[:3, 3], camera.K))
+    for index in np.ndindex(*points.shape[:2]):
+        x, y, z = rotation @ points[index].numpy() + translation
+        expected = (K[0, 0] * x / z + K[0, 2], K[1, 1] * y / z + K[1, 2])
+        np.testing.assert_allclose(pixels[index].numpy(), expected, rtol=1e-12, atol=1e-9)
+    assert torch.autograd.gradcheck(lambda p: project(p, camera), points.clone().requires_grad_())
 
 
 def test_nearest_kernel_matches_brute_force() -> None:
