@@ -3,10 +3,10 @@
     python -m benchmarks.body_fit_speed FOLDER [FOLDER ...] [--poses] [--repeats 3]
 
 FOLDER is a People-Snapshot training folder (a `make-sample` train folder, or the study's train-noisy).
-Runs the fit from anny's default starts once, as `train-initial` runs it in a new process, then `--repeats`
-more times in the same process, and prints one row per folder: the first run's wall time, the median of the
-repeats, and the final silhouette distance (the first run is the slower, as in every new process).
-`--poses` fits every frame's pose with the body, as for estimated poses.
+Runs the fit from anny's default starts once per folder, then `--repeats` more times in the same process, and
+prints one row per folder: the first run's wall time, the median of the repeats, and the final silhouette
+distance. Give one folder per process for a first run like `train-initial`'s, in a new process. `--poses`
+fits every frame's pose with the body, as for estimated poses.
 """
 
 from __future__ import annotations
