@@ -48,7 +48,7 @@ import torch
 
 from avatarperfect_cli.errors import AvatarPerfectError
 from avatarperfect_cli.io.pose_json import PoseFile
-from avatarperfect_cli.sample.mesh_raster import MeshRender
+from avatarperfect_cli.render.mesh_raster import MeshRender
 from avatarperfect_cli.sample.subject import SyntheticSubject
 
 STYLES = ("exact", "flat")

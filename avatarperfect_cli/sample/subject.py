@@ -23,7 +23,7 @@ from avatarperfect_cli.body.anny_model import full_phenotype
 from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
 from avatarperfect_cli.io.json_file import read_json_object
 from avatarperfect_cli.render.camera import Camera
-from avatarperfect_cli.sample.mesh_raster import MeshRender, render_mesh, vertex_normals
+from avatarperfect_cli.render.mesh_raster import MeshRender, render_mesh, vertex_normals
 from avatarperfect_cli.sample.texture import PRESETS, SubjectTexture, get_preset, paint_texture
 
 TEXTURE_SIZE = 1024

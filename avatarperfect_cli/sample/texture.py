@@ -16,7 +16,7 @@ import numpy as np
 
 from avatarperfect_cli.body.base import BodyTemplate
 from avatarperfect_cli.errors import AvatarPerfectError
-from avatarperfect_cli.sample.mesh_raster import rasterize_triangles, vertex_normals
+from avatarperfect_cli.render.mesh_raster import rasterize_triangles, vertex_normals
 
 REGIONS: tuple[str, ...] = ("skin", "hair", "shirt", "trousers", "shoes", "inner_arm", "armpit", "crotch")
 REGION = {name: index for index, name in enumerate(REGIONS)}

@@ -38,15 +38,15 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from avatarperfect_cli.avatar.rendering import render_avatar
 from avatarperfect_cli.body import BodyTemplate, forward_kinematics, skin_points
 from avatarperfect_cli.body.anny_model import PHENOTYPES, anny_shape, joint_weights
 from avatarperfect_cli.body.base import SMPL_MIRROR, joint_displacements
 from avatarperfect_cli.datasets import VideoDataset
 from avatarperfect_cli.datasets.people_snapshot import downscaled_camera
+from avatarperfect_cli.render import Camera
+from avatarperfect_cli.render.mesh_raster import mesh_coverage
 from avatarperfect_cli.training.pose_fit import PoseFitConfig, PoseOffsets
 from avatarperfect_cli.training.silhouette import Silhouettes, silhouette_loss, silhouettes, surface_points
-from avatarperfect_cli.training.template_offset import silhouette_avatar
 
 # Phenotype values are stored rounded to this many decimals, so a recorded body rebuilds the same template.
 PHENOTYPE_DECIMALS = 4
@@ -332,18 +332,24 @@ def fit_picture(
     masks = F.interpolate(video.masks[frames].float()[:, None], size=(camera.height, camera.width), mode="area")[:, 0] >= 0.5
     rows, ious = [], []
     for template, body_pose, transl in bodies:
-        silhouette = silhouette_avatar(template)
         panels, scores = [], []
-        with torch.no_grad():
-            for frame, mask in zip(frames.tolist(), masks):
-                alpha = render_avatar(silhouette, body_pose[frame], transl[frame], camera, torch.zeros(3)).alpha
-                body = alpha >= 0.5
-                scores.append(float((body & mask).sum()) / max(float((body | mask).sum()), 1.0))
-                panel = torch.ones(camera.height, camera.width, 3)
-                panel[mask & ~body] = torch.tensor(_MISSED)
-                panel[body & ~mask] = torch.tensor(_OUTSIDE)
-                panel[body & mask] = torch.tensor(_BOTH)
-                panels.append(panel)
+        for frame, mask in zip(frames.tolist(), masks):
+            body = torch.from_numpy(body_silhouette(template, body_pose[frame], transl[frame], camera) >= 0.5)
+            scores.append(float((body & mask).sum()) / max(float((body | mask).sum()), 1.0))
+            panel = torch.ones(camera.height, camera.width, 3)
+            panel[mask & ~body] = torch.tensor(_MISSED)
+            panel[body & ~mask] = torch.tensor(_OUTSIDE)
+            panel[body & mask] = torch.tensor(_BOTH)
+            panels.append(panel)
         rows.append(torch.cat(panels, dim=1))
         ious.append(sum(scores) / len(scores))
     return torch.cat(rows, dim=0).numpy(), ious
+
+
+def body_silhouette(template: BodyTemplate, body_pose: torch.Tensor, transl: torch.Tensor, camera: Camera) -> np.ndarray:
+    """(H, W) float32 in [0, 1]: how much of each pixel the template's mesh covers, posed by body_pose
+    (24, 3) axis-angle and transl (3,) metres (2 x 2 subsamples a pixel)."""
+    with torch.no_grad():
+        transforms = forward_kinematics(body_pose[None].float(), template.rest_joints.float(), transl[None].float())[0]
+        vertices = skin_points(template.vertices.float(), template.weights.float(), transforms)
+    return mesh_coverage(vertices.numpy(), template.faces.numpy(), camera)

@@ -33,7 +33,9 @@ from avatarperfect_cli.render import Camera
 
 
 # The template's initial Gaussians are discs as wide as their vertex's share of the surface; their alpha
-# spreads past the mesh's outline. Shrunk by this factor, the silhouette hugs the outline (without holes).
+# spreads past the mesh's outline. Shrunk by this factor it stays inside the outline, with gaps between the
+# discs along the limbs that lower the soft IoU about alike at every shift, so the search's peak stands
+# (the fit's picture and IoU draw the mesh itself: `body_fit.body_silhouette`).
 SILHOUETTE_SHRINK = 0.5
 
 

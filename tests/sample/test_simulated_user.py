@@ -14,7 +14,7 @@ from PIL import Image
 from avatarperfect_cli.datasets import load_people_snapshot
 from avatarperfect_cli.errors import AvatarPerfectError
 from avatarperfect_cli.io import read_image, write_image
-from avatarperfect_cli.sample.mesh_raster import MeshRender
+from avatarperfect_cli.render.mesh_raster import MeshRender
 from avatarperfect_cli.sample.simulated_user import PaintResult, UserConfig, paint
 from avatarperfect_cli.sample.subject import SyntheticSubject
 from avatarperfect_cli.sample.texture import REGION

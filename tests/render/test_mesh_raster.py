@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from avatarperfect_cli.render.camera import Camera, look_at
-from avatarperfect_cli.sample.mesh_raster import render_mesh, vertex_normals
+from avatarperfect_cli.render.mesh_raster import mesh_coverage, render_mesh, vertex_normals
 
 TEXTURE_SIZE = 64
 
@@ -97,6 +97,19 @@ def test_supersampling_is_the_area_average_of_a_finer_render() -> None:
     np.testing.assert_allclose(coarse.coverage, fine.coverage.reshape(16, 2, 16, 2).mean(axis=(1, 3)))
     assert ((coarse.coverage > 0) & (coarse.coverage < 1)).any()  # there are edge pixels
 
+
+
+def test_mesh_coverage_is_the_share_of_ray_cast_subsamples_that_hit() -> None:
+    """Silhouettes: each pixel's coverage is the share of its 3 x 3 subsample rays (the reference ray
+    caster at three times the resolution) that hit a triangle."""
+    vertices, faces, uvs = _two_triangles()
+    camera = _camera()
+    face_id, _ = _ray_cast(vertices, faces, uvs, camera.scaled(3))
+    expected = (face_id >= 0).reshape(16, 3, 16, 3).mean(axis=(1, 3))
+    coverage = mesh_coverage(vertices, faces, camera, supersample=3)
+    assert coverage.dtype == np.float32 and coverage.shape == (16, 16)
+    np.testing.assert_allclose(coverage, expected, atol=1e-6)
+    assert ((coverage > 0) & (coverage < 1)).sum() > 10 and (coverage == 1).sum() > 10
 
 def _tilted_plane(size: int = 1):
     """A quad on the plane through the origin with normal n, spanned by unit vectors e_u, e_v."""

@@ -1,4 +1,4 @@
-"""A small CPU mesh rasterizer that renders ground-truth images of the synthetic subject.
+"""A small CPU mesh rasterizer: ground-truth images of the synthetic subject, and body silhouettes.
 
 It is independent of the Gaussian renderer on purpose: z-buffered triangles, perspective-correct
 barycentrics, bilinear UV texture lookup, optional headlight shading, and supersampling
@@ -68,19 +68,9 @@ def render_mesh(
         raise ValueError(f"supersample must be >= 1, got {supersample}")
     fine = camera.scaled(supersample)
     rotation = camera.world_to_camera[:3, :3].double().numpy()
-    translation = camera.world_to_camera[:3, 3].double().numpy()
-    points = np.asarray(vertices, dtype=np.float64) @ rotation.T + translation
     faces = np.ascontiguousarray(faces, dtype=np.int64)
-
+    points, screen, keep = _screen_points(vertices, faces, fine)
     K = fine.K.double().numpy()
-    depth = points[:, 2]
-    safe_depth = np.where(depth > _NEAR, depth, 1.0)
-    screen = np.empty((len(points), 3))
-    screen[:, 0] = K[0, 0] * points[:, 0] / safe_depth + K[0, 1] * points[:, 1] / safe_depth + K[0, 2]
-    screen[:, 1] = K[1, 1] * points[:, 1] / safe_depth + K[1, 2]
-    screen[:, 2] = 1.0 / safe_depth
-
-    keep = (depth[faces] > _NEAR).all(axis=1)
     if cull_back_faces:
         corners = points[faces]
         face_normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
@@ -102,6 +92,35 @@ def render_mesh(
             face_id, np.ascontiguousarray(face_labels, np.int32), supersample, camera.height, camera.width
         )
     return MeshRender(rgb=rgb, coverage=coverage, labels=labels)
+
+
+def mesh_coverage(vertices: np.ndarray, faces: np.ndarray, camera: Camera, supersample: int = 2) -> np.ndarray:
+    """(H, W) float32 in [0, 1]: the fraction of each pixel's supersample x supersample subsamples the mesh
+    covers (its silhouette). vertices: (V, 3) world frame, metres; faces: (F, 3) vertex indices."""
+    if supersample < 1:
+        raise ValueError(f"supersample must be >= 1, got {supersample}")
+    fine = camera.scaled(supersample)
+    faces = np.ascontiguousarray(faces, dtype=np.int64)
+    _, screen, keep = _screen_points(vertices, faces, fine)
+    face_id, _ = rasterize_triangles(screen, faces, fine.width, fine.height, keep)
+    covered = (face_id >= 0).reshape(camera.height, supersample, camera.width, supersample)
+    return covered.mean(axis=(1, 3), dtype=np.float32)
+
+
+def _screen_points(vertices: np.ndarray, faces: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The vertices in the camera frame (V, 3) metres, on the screen (V, 3): pixel x, pixel y and inverse
+    depth, and the faces (F,) bool whose every vertex lies in front of the near plane."""
+    rotation = camera.world_to_camera[:3, :3].double().numpy()
+    translation = camera.world_to_camera[:3, 3].double().numpy()
+    points = np.asarray(vertices, dtype=np.float64) @ rotation.T + translation
+    K = camera.K.double().numpy()
+    depth = points[:, 2]
+    safe_depth = np.where(depth > _NEAR, depth, 1.0)
+    screen = np.empty((len(points), 3))
+    screen[:, 0] = K[0, 0] * points[:, 0] / safe_depth + K[0, 1] * points[:, 1] / safe_depth + K[0, 2]
+    screen[:, 1] = K[1, 1] * points[:, 1] / safe_depth + K[1, 2]
+    screen[:, 2] = 1.0 / safe_depth
+    return points, screen, (depth[faces] > _NEAR).all(axis=1)
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
