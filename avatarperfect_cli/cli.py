@@ -164,6 +164,9 @@ def prepare(
     ),  # fmt: skip
     every: int = typer.Option(1, help="Keep every N-th frame."),
     fov: float = typer.Option(60.0, help="The camera's field of view across the longer image side, degrees (assumed)."),
+    max_side: int = typer.Option(
+        1080, help="Frames longer than this many pixels on their longer side are shrunk to it (0: keep the video's size)."
+    ),
 ) -> None:
     """Make a People-Snapshot folder from your own video: frames, person masks, fitted SMPL poses, a camera
     (needs MediaPipe's pose models: the package's optional extra 'prepare'; see docs/real-data.md)."""
@@ -173,7 +176,7 @@ def prepare(
 
     _require_in_range("--every", every, 1)
     check_writable_folder(out_dir)
-    run(video, out_dir, PrepareSettings(every=every, fov_degrees=fov))
+    run(video, out_dir, PrepareSettings(every=every, fov_degrees=fov, max_side=max_side))
 
 
 @app.command("train-initial")

@@ -40,7 +40,7 @@ import shutil
 import tempfile
 import threading
 import zipfile
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -252,7 +252,7 @@ def load_people_snapshot(
 
 def write_people_snapshot(
     root: Path,
-    images: np.ndarray,
+    images: np.ndarray | Sequence[np.ndarray],
     masks: np.ndarray,
     body_pose: np.ndarray | torch.Tensor,
     transl: np.ndarray | torch.Tensor,
@@ -262,7 +262,8 @@ def write_people_snapshot(
 ) -> None:
     """Write frames 0..T-1 as a People-Snapshot folder at `root`, all at once.
 
-    images:    (T, H, W, 3) uint8 RGB, written as deterministic PNGs images/image_%04d.png
+    images:    (T, H, W, 3) uint8 RGB, or T frames (H, W, 3) (never stacked: a long video is not held twice),
+               written as deterministic PNGs images/image_%04d.png
     masks:     (T, H, W) bool, written as uint8 0/1 masks/mask_%04d.npy
     body_pose: (T, 24, 3) SMPL axis-angle, radians, joint 0 the global orientation (poses.npz "thetas")
     transl:    (T, 3) metres
@@ -271,14 +272,12 @@ def write_people_snapshot(
     subject:   written to subject.json when given
     The folder is built next to `root` and renamed into place; an existing dataset at `root` is replaced.
     """
-    images = np.asarray(images)
     masks = np.asarray(masks)
     body_pose = _as_numpy(body_pose).astype(np.float32)
     transl = _as_numpy(transl).astype(np.float32)
     betas = np.zeros(NUM_BETAS, np.float32) if betas is None else _as_numpy(betas).astype(np.float32).reshape(-1)
-    count = images.shape[0]
+    count = len(images)
     expected = {
-        "images": (images, (count, camera.height, camera.width, 3)),
         "masks": (masks, (count, camera.height, camera.width)),
         "body_pose": (body_pose, (count, 24, 3)),
         "transl": (transl, (count, 3)),
@@ -287,8 +286,11 @@ def write_people_snapshot(
     for name, (array, shape) in expected.items():
         if array.shape != shape:
             raise ValueError(f"{name} has shape {array.shape}, expected {shape}")
-    if images.dtype != np.uint8 or masks.dtype != np.bool_:
-        raise ValueError(f"images must be uint8 and masks bool, got {images.dtype} and {masks.dtype}")
+    for index, image in enumerate(images):
+        if image.shape != (camera.height, camera.width, 3) or image.dtype != np.uint8:
+            raise ValueError(f"image {index} is {image.dtype} {image.shape}, expected uint8 {(camera.height, camera.width, 3)}")
+    if masks.dtype != np.bool_:
+        raise ValueError(f"masks must be bool, got {masks.dtype}")
 
     root = Path(root)
     check_dataset_output(root)

