@@ -1,8 +1,11 @@
 """The own-video path end to end on a synthetic subject whose truth is known (docs/real-data.md).
 
     python -m benchmarks.own_video OUT [--preset default] [--resolution 512] [--frames 100] [--iterations 2000] [--fov DEG] [--split]
+                                       [--cut ROWS]
 
-1. `make-sample`'s turn-around of the preset (OUT/sample/train: exact poses, exact masks, white background).
+1. `make-sample`'s turn-around of the preset (OUT/sample/train: exact poses, exact masks, white background);
+   with `--cut ROWS` every frame keeps only its top ROWS pixel rows (OUT/sample/train-cut: the frame cuts the
+   person off, `benchmarks/cut_frames.py`), and everything below uses those frames.
 2. The same frames as a user's video: each person composited over a background that is not white (a
    gradient with a floor and a wall pattern), compressed to OUT/video.mp4.
 3. `prepare` the video (its assumed field of view and anny's middle body, as for any video), then
@@ -44,6 +47,7 @@ from avatarperfect_cli.io.workspace import open_workspace
 from avatarperfect_cli.sample.generate import make_sample
 from avatarperfect_cli.stages.workspace_data import body_template, load_video, transl_offset
 from avatarperfect_cli.training.silhouette import project
+from benchmarks.cut_frames import cut_frames
 from benchmarks.mask_error import long_shares
 
 CLI = [sys.executable, "-m", "avatarperfect_cli"]
@@ -127,11 +131,16 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=2000)
     parser.add_argument("--fov", type=float, help="prepare's field of view, degrees (default: prepare's assumed one)")
     parser.add_argument("--split", action="store_true", help="also the references with only the images or only the masks the video's")
+    parser.add_argument("--cut", type=int, help="keep only the top CUT pixel rows of every frame (a person the frame cuts off)")
     args = parser.parse_args()
     out, frames = args.out, args.frames
     train, even, odd = out / "sample" / "train", f"0:{frames - 1}:2", f"1:{frames - 1}:2"
     if not (train / "poses.npz").is_file():
         make_sample(out / "sample", args.preset, args.resolution, train_frames=frames, test_frames=1)
+    if args.cut is not None:
+        if not (out / "sample" / "train-cut" / "poses.npz").is_file():
+            cut_frames(train, out / "sample" / "train-cut", args.cut)
+        train = out / "sample" / "train-cut"
     if not (out / "video.mp4").is_file():
         write_video(train, out / "video.mp4")
     if not (out / "prepared" / "poses.npz").is_file():

@@ -61,7 +61,8 @@ class JointTargets:
     confidence: (T, 24) in [0, 1]; 0 for a joint no landmark observes
     world:      (T, 24, 3) root-relative 3-D positions in the camera's axes (x right, y down, z forward),
                 any scale; only directions between joints are used
-    rows:       (T, 2) the person's silhouette's top and bottom pixel rows (edges, pixels), or None
+    rows:       (T, 2) the person's silhouette's top and bottom pixel rows (edges, pixels; NaN where the
+                frame cuts the person off), or None
     """
 
     image: torch.Tensor
@@ -128,7 +129,9 @@ def fit_poses(
         if targets.rows is not None:
             rows = _project(skin_points(points, weights, transforms), K)[..., 1]
             extremes = torch.stack([-torch.logsumexp(-rows, dim=1), torch.logsumexp(rows, dim=1)], dim=1)  # soft min, max
-            silhouette = ((extremes - targets.rows.double()) ** 2).mean() / scale**2
+            known = ~torch.isnan(targets.rows)
+            misses = torch.where(known, extremes - targets.rows.double().nan_to_num(), 0.0)
+            silhouette = (misses**2).sum() / known.sum().clamp_min(1) / scale**2
         loss = (
             reprojection + config.direction_weight * direction + config.prior_weight * pose_prior
             + config.smooth_weight * smooth + config.lean_weight * lean

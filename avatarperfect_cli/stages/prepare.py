@@ -122,6 +122,9 @@ def prepare(video: Path, out: Path, settings: PrepareSettings | None = None, pro
         missing = int((~found).sum())
         console.print(f"{video}: no person found in {missing} of {len(found)} frames; they are left out", soft_wrap=True)
     camera = assumed_camera(width, height, settings.fov_degrees)
+    cut_off = cut_off_line(landmarks.masks)
+    if cut_off:
+        console.print(cut_off, soft_wrap=True)
     template = load_body_template("anny", phenotype=settings.phenotype)
     console.print(f"fitting the anny skeleton to {int(found.sum())} frames of landmarks")
     body_pose, transl = fit_poses(template, camera, joint_targets(landmarks), settings.fit)
@@ -141,6 +144,22 @@ def prepare(video: Path, out: Path, settings: PrepareSettings | None = None, pro
         soft_wrap=True,
     )
     return Path(out)
+
+
+def cut_off_line(masks: np.ndarray) -> str | None:
+    """One line for the user when the frame cuts the person off (a mask (T, H, W) bool reaching an edge of the
+    image) in some frames, naming the edges and how many frames; None when every mask lies inside the frame."""
+    edges = {
+        "top": masks[:, 0].any(axis=1), "bottom": masks[:, -1].any(axis=1),
+        "left": masks[:, :, 0].any(axis=1), "right": masks[:, :, -1].any(axis=1),
+    }  # fmt: skip
+    cut = [f"{name} in {int(hit.sum())}" for name, hit in edges.items() if hit.any()]
+    if not cut:
+        return None
+    return (
+        f"the frame cuts the person off at the {', '.join(cut)} of {len(masks)} frames: the fits leave what lies past "
+        "the edge open, but a body wholly in the picture fits best"
+    )
 
 
 def check_video(video: Path) -> None:
@@ -201,7 +220,7 @@ def assumed_camera(width: int, height: int, fov_degrees: float) -> Camera:
 def joint_targets(landmarks: Landmarks) -> JointTargets:
     """MediaPipe's landmarks as per-SMPL-joint targets (LANDMARK_WEIGHTS): weighted means of positions, and
     the least visible landmark's visibility as the confidence (0 for joints without landmarks); and the
-    masks' top and bottom edges (rows)."""
+    masks' top and bottom edges (rows; NaN where a mask reaches the image's edge: the person goes on past it)."""
     weights = np.zeros((24, NUM_LANDMARKS))
     for joint, parts in LANDMARK_WEIGHTS.items():
         for landmark, weight in parts.items():
@@ -210,8 +229,8 @@ def joint_targets(landmarks: Landmarks) -> JointTargets:
     visibility = np.where(used[None], landmarks.visibility[:, None, :], np.inf).min(axis=2)
     confidence = np.where(used.any(axis=1)[None], visibility, 0.0)
     filled = landmarks.masks.any(axis=2)  # (T, H): rows the person covers
-    top = filled.argmax(axis=1)
-    bottom = filled.shape[1] - filled[:, ::-1].argmax(axis=1)
+    top = np.where(filled[:, 0], np.nan, filled.argmax(axis=1))  # NaN: the frame cuts the person off there
+    bottom = np.where(filled[:, -1], np.nan, filled.shape[1] - filled[:, ::-1].argmax(axis=1))
     return JointTargets(
         image=torch.from_numpy(weights @ landmarks.image),
         confidence=torch.from_numpy(np.clip(confidence, 0.0, 1.0)),

@@ -26,7 +26,10 @@ from avatarperfect_cli.sample.generate import fit_camera, posed_vertices, render
 from avatarperfect_cli.sample.subject import SyntheticSubject
 from avatarperfect_cli.sample.texture import get_preset
 from avatarperfect_cli.stages import prepare as prepare_stage
-from avatarperfect_cli.stages.prepare import PrepareSettings, _pose_solution, detect_landmarks, prepare, read_video_frames
+from avatarperfect_cli.stages.prepare import (
+    NUM_LANDMARKS, Landmarks, PrepareSettings, _pose_solution, cut_off_line, detect_landmarks, joint_targets, prepare,
+    read_video_frames,
+)  # fmt: skip
 
 HAS_MEDIAPIPE = importlib.util.find_spec("mediapipe") is not None
 
@@ -144,3 +147,24 @@ def test_frames_longer_than_max_side_are_shrunk_to_it_with_their_aspect(tmp_path
     if expected == (48, 80):  # exactly half: each pixel is the mean of a 2 x 2 block
         block_means = decoded[1].astype(np.float64).reshape(48, 2, 80, 2, 3).mean(axis=(1, 3))
         assert np.abs(frames[1] - block_means).max() <= 0.5 + 1e-9
+
+
+def test_silhouette_rows_at_the_image_edge_are_unknown() -> None:
+    """A person the frame cuts off at the feet (the mask reaches the last row) or the head (the first row)
+    has no bottom or top edge to fit: NaN there, the edge row elsewhere."""
+    masks = np.zeros((3, 40, 30), bool)
+    masks[0, 5:31, 10:20] = True  # whole: rows 5 to 30
+    masks[1, 5:, 10:20] = True  # feet cut off
+    masks[2, :25, 10:20] = True  # head cut off
+    landmarks = Landmarks(np.zeros((3, NUM_LANDMARKS, 2)), np.ones((3, NUM_LANDMARKS)), np.zeros((3, NUM_LANDMARKS, 3)), masks)
+    rows = joint_targets(landmarks).rows.numpy()
+    np.testing.assert_array_equal(rows, [[5.0, 31.0], [5.0, np.nan], [np.nan, 25.0]])
+
+
+def test_the_user_hears_where_the_frame_cuts_the_person_off() -> None:
+    masks = np.zeros((4, 40, 30), bool)
+    masks[:, 5:31, 10:20] = True
+    assert cut_off_line(masks) is None
+    masks[1:3, 31:, 12:18] = True  # feet below the frame in two frames
+    masks[2, 10:20, :10] = True  # and an arm off its left edge in one
+    assert cut_off_line(masks).startswith("the frame cuts the person off at the bottom in 2, left in 1 of 4 frames:")

@@ -62,3 +62,34 @@ def test_the_true_body_is_nearer_its_masks_than_a_moved_one() -> None:
     assert on_masks.shape == (len(video),)
     assert float(on_masks.max()) < 0.1
     assert bool((moved > 3.0 * on_masks).all()), (on_masks, moved)
+
+
+def _cut_off_below(video: VideoDataset, rows: int) -> VideoDataset:
+    """The video with only its top `rows` pixel rows: the camera's image ends there (its intrinsics kept)."""
+    camera = Camera(video.camera.K, video.camera.world_to_camera, video.camera.width, rows)
+    return VideoDataset(**{**vars(video), "camera": camera, "images": video.images[:, :rows], "masks": video.masks[:, :rows]})
+
+
+def test_a_body_the_frame_cuts_off_is_as_near_its_masks_as_a_whole_one() -> None:
+    """The frames cut at the shins (the sample's feet below the image): the same body on the same poses
+    stays on the cut masks (the unseen feet past the lower edge cost nothing, and the mask's cut along
+    that edge is not its outline), while a frame whose mask does not reach the edge still charges a point
+    for every pixel it lies past the image."""
+    video = load_people_snapshot(SAMPLE, FrameRange(0, 59, 10), downscale=1)
+    template = load_body_template("anny", phenotype=video.subject["phenotype"])
+    lowest_row = max(int(torch.nonzero(mask.any(dim=1)).max()) for mask in video.masks)
+    cut = _cut_off_below(video, lowest_row - 25)
+    posed = skin_points(template.vertices, template.weights, forward_kinematics(video.body_pose, template.rest_joints, video.transl))
+    whole = silhouette_loss(posed, silhouettes(video, torch.arange(len(video)), 96, 200), huber=2.0)
+    data = silhouettes(cut, torch.arange(len(cut)), 96, 200)
+    assert bool(data.cut[:, 1].all()) and not bool(data.cut[:, [0, 2, 3]].any())
+    # a contour pixel on the cut row is the side of a leg: a pixel beside or above it is not the person's
+    background = torch.nn.functional.pad(data.outside[:, 0] > 0, (1, 1, 1, 0), value=True)
+    for frame, pixels in enumerate(data.contours.long()):
+        for x, y in pixels[pixels[:, 1] == data.camera.height - 1].tolist():
+            assert bool(background[frame, y : y + 2, x : x + 3].any())
+    on_cut_masks = silhouette_loss(posed, data, huber=2.0)
+    assert float(on_cut_masks.max()) < 0.1 and float(on_cut_masks.mean()) < 1.5 * float(whole.mean()) + 0.01
+    # the same points over masks that end above the edge: everything past it lies outside the person
+    data.cut[:] = False
+    assert bool((silhouette_loss(posed, data, huber=2.0) > 10 * on_cut_masks).all())
