@@ -15,6 +15,7 @@ from avatarperfect_cli.avatar.model import Avatar
 from avatarperfect_cli.body import BodyTemplate, load_body_template
 from avatarperfect_cli.body.anny_model import build_anny_template, default_cache_dir, load_anny_model
 from avatarperfect_cli.datasets import FrameRange, VideoDataset, load_people_snapshot, read_dataset_camera, video_fingerprint
+from avatarperfect_cli.datasets.people_snapshot import downscaled_camera
 from avatarperfect_cli.devices import CPU
 from avatarperfect_cli.errors import AvatarPerfectError
 from avatarperfect_cli.io.atomic import atomic_path
@@ -39,6 +40,8 @@ AUTO_OFFSET, FIT_OFFSET = "auto", "fit"
 BODY_SHAPES = ("auto", "fit", "exact")
 # The picture of the body and pose fit in the workspace: the start and the fitted body over training masks.
 BODY_FIT_PICTURE = "body_fit.png"
+# the longest image side avatars of people are usually trained at (People-Snapshot's 1080 px frames halved)
+TYPICAL_RESOLUTION = 540
 BODY_TEMPLATE = "body_template.npz"  # the body the avatar was built on, so no later stage rebuilds it
 
 
@@ -272,6 +275,10 @@ def _train_initial(dataset: Path, workspace: Path, fit: InitialFit, force: bool,
         console.print(f"silhouette IoU with the masks {iou_start:.3f} -> {iou_fitted:.3f} ({BODY_FIT_PICTURE} shows both)")
     avatar = Avatar.from_template(template, sh_degree=fit.sh_degree, body_model=body_model).to(fit.device)
     console.print(f"fitting {len(avatar):,} Gaussians to {len(video)} frames of {video.camera.width}x{video.camera.height}")
+    factor = round(max(video.camera.width, video.camera.height) / TYPICAL_RESOLUTION)
+    if fit.video.resolution is None and factor >= 2:
+        smaller = downscaled_camera(video.camera, factor)
+        console.print(f"(--resolution {TYPICAL_RESOLUTION} would train at {smaller.width}x{smaller.height}, on {factor**2} times fewer pixels)")
     config = TrainConfig(iterations=fit.iterations, seed=fit.seed)
     config.densify.max_gaussians = fit.max_gaussians
     config.learning_rates.total_steps = fit.iterations

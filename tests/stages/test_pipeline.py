@@ -170,3 +170,15 @@ def test_a_fitted_body_is_recorded_for_every_later_stage(tmp_path: Path):
     assert torch.tensor(body["bone_offsets"]).shape == (24, 3)
     torch.testing.assert_close(load_described_template(body).rest_joints, avatar.rest_joints)
     assert ws.manifest["transl_offset"] != [0.0, 0.0, 0.0]
+
+
+def test_large_frames_trained_at_full_size_get_a_hint(tmp_path: Path, monkeypatch):
+    """A user who leaves out --resolution on frames at least twice the usual training size hears what it
+    would save; one who gives it does not."""
+    monkeypatch.setattr(train_initial_stage, "TYPICAL_RESOLUTION", 64)  # the sample's 256² frames: four times that
+    quick = ["--iterations", "1", "--frames", "0:59:30", "--body-shape", "exact"]
+    full = invoke("train-initial", SAMPLE / "train", tmp_path / "full", *quick)
+    assert full.exit_code == 0, full.output
+    assert "(--resolution 64 would train at 64x64, on 16 times fewer pixels)" in full.stderr
+    given = invoke("train-initial", SAMPLE / "train", tmp_path / "given", *quick, "--resolution", "128")
+    assert given.exit_code == 0 and "--resolution" not in given.stderr
