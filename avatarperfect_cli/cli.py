@@ -171,10 +171,13 @@ def prepare(
     """Make a People-Snapshot folder from your own video: frames, person masks, fitted SMPL poses, a camera
     (needs MediaPipe's pose models: the package's optional extra 'prepare'; see docs/real-data.md)."""
     from avatarperfect_cli.io.outputs import check_writable_folder
+    from avatarperfect_cli.sample.generate import MIN_RESOLUTION
     from avatarperfect_cli.stages.prepare import PrepareSettings
     from avatarperfect_cli.stages.prepare import prepare as run
 
     _require_in_range("--every", every, 1)
+    if max_side != 0:
+        _require_in_range("--max-side (or 0: the video's size)", max_side, MIN_RESOLUTION)
     check_writable_folder(out_dir)
     run(video, out_dir, PrepareSettings(every=every, fov_degrees=fov, max_side=max_side))
 

@@ -84,6 +84,8 @@ def test_bad_background_is_rejected(tmp_path: Path):
         (["train-initial", "{tmp}/data", "{tmp}/ws", "--sh-degree", "4"], "--sh-degree must be from 0 to 3, got 4"),
         (["train-initial", "{tmp}/data", "{tmp}/ws", "--max-gaussians", "0"], "--max-gaussians must be at least 1, got 0"),
         (["make-sample", "{tmp}/sample", "--resolution", "1"], "--resolution must be from 16 to 8192, got 1"),
+        (["prepare", "{tmp}/v.mp4", "{tmp}/out", "--max-side", "8"], "--max-side (or 0: the video's size) must be at least 16, got 8"),
+        (["prepare", "{tmp}/v.mp4", "{tmp}/out", "--every", "0"], "--every must be at least 1, got 0"),
         (["make-sample", "{tmp}/sample", "--resolution", "30000"], "--resolution must be from 16 to 8192, got 30000"),
         (["suggest", "{tmp}/ws", "--exposure-poses", "-1"], "--exposure-poses must be at least 0, got -1"),
         (["train-initial", "{tmp}/data", "{tmp}/ws", "--body-shape", "guess"], "--body-shape 'guess' is not one of auto, fit, exact"),
