@@ -8,8 +8,8 @@ posed points: what the body fit and the pose fit minimise.
 Both are Huber-robust, so a mask a few pixels off at its border moves nothing far.
 
 A person the frame cuts off (feet below its lower edge, a head above it) goes on past that edge, unseen:
-points projected past an image edge that the mask touches count as inside, and the mask's pixels on the
-image's edges are not part of its contour. Without that, a video cropped at the shins fitted the custom
+points projected past an image edge that the mask touches count as inside, and where the mask is cut along
+an image edge, that cut is not part of its contour. Without that, a video cropped at the shins fitted the custom
 subject's rest joints 13 cm from the truth instead of 0.5 cm.
 """
 
