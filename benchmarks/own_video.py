@@ -1,7 +1,7 @@
 """The own-video path end to end on a synthetic subject whose truth is known (docs/real-data.md).
 
     python -m benchmarks.own_video OUT [--preset default] [--resolution 512] [--frames 100] [--iterations 2000] [--fov DEG] [--split]
-                                       [--cut ROWS]
+                                       [--cut ROWS] [--fitted-body]
 
 1. `make-sample`'s turn-around of the preset (OUT/sample/train: exact poses, exact masks, white background);
    with `--cut ROWS` every frame keeps only its top ROWS pixel rows (OUT/sample/train-cut: the frame cuts the
@@ -18,7 +18,9 @@
    sample has them, both on the subject's own body (`--body-shape exact`). The first differs from the own
    video only in what `prepare` and the fit estimate (poses, body, camera): it is the target. The second
    also shows what the video costs; `--split` adds the two between (only the images, only the masks the
-   video's).
+   video's). `--fitted-body` trains the first reference's frames and exact poses once more on the body fitted
+   to their masks (`--body-shape fit`) and scores both with the test poses refined too: what the fitted body
+   costs, apart from the poses and the camera.
 
 Prints one row per path: held-out IoU, PSNR and SSIM (given and refined poses), the Gaussian count and the
 share of Gaussians longer than 3 cm; the comparison pictures are in each workspace's eval folder. Then how far
@@ -132,6 +134,7 @@ def main() -> None:
     parser.add_argument("--fov", type=float, help="prepare's field of view, degrees (default: prepare's assumed one)")
     parser.add_argument("--split", action="store_true", help="also the references with only the images or only the masks the video's")
     parser.add_argument("--cut", type=int, help="keep only the top CUT pixel rows of every frame (a person the frame cuts off)")
+    parser.add_argument("--fitted-body", action="store_true", help="also the first reference on the body fitted to its masks")
     args = parser.parse_args()
     out, frames = args.out, args.frames
     train, even, odd = out / "sample" / "train", f"0:{frames - 1}:2", f"1:{frames - 1}:2"
@@ -161,6 +164,11 @@ def main() -> None:
     for folder, workspace in folders:
         run("train-initial", folder, workspace, "--frames", even, "--body-shape", "exact", *iterations, "--force")
         run("evaluate", workspace, "--test", train, "--frames", odd)
+    fitted_body = out / "ws-video-exact-fitted-body"
+    if args.fitted_body:
+        run("train-initial", out / "video-exact", fitted_body, "--frames", even, "--body-shape", "fit", *iterations, "--force")
+        for workspace in (fitted_body, out / "ws-video-exact"):
+            run("evaluate", workspace, "--test", train, "--frames", odd, "--refine-poses")
     own = scores(out / "ws-own", out / "truth-test")
     rows = [
         ("own video, given poses", out / "ws-own", own["mean"]),
@@ -169,6 +177,13 @@ def main() -> None:
           for name, (label, _, _) in references.items()],
         ("the sample's frames, exact poses and body", out / "ws-exact", scores(out / "ws-exact", train)["mean"]),
     ]  # fmt: skip
+    if args.fitted_body:
+        fitted, exact = scores(fitted_body, train), scores(out / "ws-video-exact", train)
+        rows += [
+            ("the video's frames and masks, exact poses, fitted body", fitted_body, fitted["mean"]),
+            ("the same, test poses refined", fitted_body, fitted["refined_poses"]["mean"]),
+            ("the video's frames and masks, exact poses and body, test poses refined", out / "ws-video-exact", exact["refined_poses"]["mean"]),
+        ]
     print("| path | IoU | PSNR (dB) | SSIM | Gaussians | > 3 cm |\n|---|---:|---:|---:|---:|---:|")
     for label, workspace, mean in rows:
         count, shares = long_shares(open_workspace(workspace).require_avatar())
