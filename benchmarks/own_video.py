@@ -194,6 +194,9 @@ def main() -> None:
         worst = int(errors.argmax())
         print(f"training frames' joints with {name}: {errors.mean():.2f} px from the truth on average, "
               f"{errors[worst]:.2f} px at frame {training.start + worst * training.step}")
+    if args.fitted_body:
+        errors = joint_errors(train, out / "prepared", fitted_body, training)["the workspace's poses"]
+        print(f"training frames' joints on the fitted body at the exact poses: {errors.mean():.2f} px from the truth on average")
 
 
 if __name__ == "__main__":
