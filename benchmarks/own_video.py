@@ -27,7 +27,7 @@ share of Gaussians longer than 3 cm; the comparison pictures are in each workspa
 the training frames' joints land from the true ones in the image, with `prepare`'s poses and with the poses
 the workspace trained on (fitted with the body and refined in training): the mean over joints and frames and
 the worst frame, in pixels (the fitted body is not the subject's, so its joints need not meet the truth's
-even at exact poses).
+even at exact poses; `--fitted-body` prints how far they lie there).
 """
 
 from __future__ import annotations
