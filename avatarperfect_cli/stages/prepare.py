@@ -40,6 +40,7 @@ from avatarperfect_cli.datasets.people_snapshot import check_dataset_output
 from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
 from avatarperfect_cli.io.paths import require_file
 from avatarperfect_cli.render import Camera
+from avatarperfect_cli.training.silhouette import EDGES, touched_edges
 
 DEFAULT_FOV_DEGREES = 60.0  # across the longer image side: between a phone's main camera and a webcam
 # frames are shrunk to this many pixels on their longer side: People-Snapshot's 1080 x 1080, twice the 540 px
@@ -149,11 +150,8 @@ def prepare(video: Path, out: Path, settings: PrepareSettings | None = None, pro
 def cut_off_line(masks: np.ndarray) -> str | None:
     """One line for the user when the frame cuts the person off (a mask (T, H, W) bool reaching an edge of the
     image) in some frames, naming the edges and how many frames; None when every mask lies inside the frame."""
-    edges = {
-        "top": masks[:, 0].any(axis=1), "bottom": masks[:, -1].any(axis=1),
-        "left": masks[:, :, 0].any(axis=1), "right": masks[:, :, -1].any(axis=1),
-    }  # fmt: skip
-    cut = [f"{name} in {int(hit.sum())}" for name, hit in edges.items() if hit.any()]
+    counts = touched_edges(masks).sum(axis=0)
+    cut = [f"{name} in {int(count)}" for name, count in zip(EDGES, counts) if count]
     if not cut:
         return None
     return (
@@ -229,8 +227,9 @@ def joint_targets(landmarks: Landmarks) -> JointTargets:
     visibility = np.where(used[None], landmarks.visibility[:, None, :], np.inf).min(axis=2)
     confidence = np.where(used.any(axis=1)[None], visibility, 0.0)
     filled = landmarks.masks.any(axis=2)  # (T, H): rows the person covers
-    top = np.where(filled[:, 0], np.nan, filled.argmax(axis=1))  # NaN: the frame cuts the person off there
-    bottom = np.where(filled[:, -1], np.nan, filled.shape[1] - filled[:, ::-1].argmax(axis=1))
+    touched = touched_edges(landmarks.masks)  # NaN where the frame cuts the person off
+    top = np.where(touched[:, 0], np.nan, filled.argmax(axis=1))
+    bottom = np.where(touched[:, 1], np.nan, filled.shape[1] - filled[:, ::-1].argmax(axis=1))
     return JointTargets(
         image=torch.from_numpy(weights @ landmarks.image),
         confidence=torch.from_numpy(np.clip(confidence, 0.0, 1.0)),

@@ -87,6 +87,17 @@ def check_masks(video: VideoDataset) -> None:
         raise AvatarPerfectError(f"the mask of frame {int(video.frame_ids[index])} is {what}: no body to fit")
 
 
+# The image edges in the column order of `touched_edges`.
+EDGES = ("top", "bottom", "left", "right")
+
+
+def touched_edges(masks: np.ndarray) -> np.ndarray:
+    """(T, 4) bool: whether each mask (T, H, W) reaches the image's top, bottom, left and right edge (`EDGES`),
+    where the frame cuts the person off and the person goes on past it."""
+    rows, columns = masks.any(axis=2), masks.any(axis=1)  # (T, H) and (T, W): what the person covers
+    return np.stack([rows[:, 0], rows[:, -1], columns[:, 0], columns[:, -1]], axis=1)
+
+
 def silhouettes(video: VideoDataset, frames: torch.Tensor, resolution: int, contour_pixels: int) -> Silhouettes:
     """The masks of `frames` (indices into the video) at about `resolution` pixels as distance fields.
 
@@ -102,7 +113,7 @@ def silhouettes(video: VideoDataset, frames: torch.Tensor, resolution: int, cont
         mask = F.interpolate(fine.float()[None, None], size=(camera.height, camera.width), mode="area")[0, 0] >= 0.5
         mask = mask.numpy().astype(np.uint8)
         outside.append(cv2.distanceTransform(1 - mask, cv2.DIST_L2, 5))
-        cut.append([mask[0].any(), mask[-1].any(), mask[:, 0].any(), mask[:, -1].any()])
+        cut.append(touched_edges(mask[None])[0])
         border = mask & ~cv2.erode(mask, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE).astype(bool)
         rows, cols = np.nonzero(border if border.any() else mask)
         chosen = generator.choice(len(rows), contour_pixels, replace=len(rows) < contour_pixels)
@@ -113,7 +124,7 @@ def silhouettes(video: VideoDataset, frames: torch.Tensor, resolution: int, cont
         video.transl[frames].float(),
         torch.from_numpy(np.stack(outside))[:, None],
         torch.from_numpy(np.stack(contours)).float(),
-        torch.tensor(cut, dtype=torch.bool),
+        torch.from_numpy(np.stack(cut)),
     )
 
 
