@@ -414,23 +414,22 @@ def blend_transforms(weights: torch.Tensor, transforms: torch.Tensor) -> torch.T
     returns     (..., N, 3, 4) the weighted sums of the joints' top 3x4 blocks
     """
     batch, points = transforms.shape[:-3], weights.shape[0]
-    blended = _blend_points_first(weights, transforms).transpose(0, 1)
+    # one (N, 24) x (24, batch * 12) product: a broadcast batched matmul can be far slower on the CPU
+    blocks = transforms[..., :3, :].reshape(-1, NUM_JOINTS, 12).transpose(0, 1).reshape(NUM_JOINTS, -1)
+    blended = (weights @ blocks).reshape(points, -1, 3, 4).transpose(0, 1)
     return blended.reshape(batch + (points, 3, 4))
 
 
-def _blend_points_first(weights: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
-    """(N, batch, 3, 4) blended transforms (`blend_transforms`) in the product's own layout, points first."""
-    # one (N, 24) x (24, batch * 12) product: a broadcast batched matmul can be far slower on the CPU
-    blocks = transforms[..., :3, :].reshape(-1, NUM_JOINTS, 12).transpose(0, 1).reshape(NUM_JOINTS, -1)
-    return (weights @ blocks).reshape(weights.shape[0], -1, 3, 4)
-
-
 def skin_points(points: torch.Tensor, weights: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
-    """Linear blend skinning. points: (N, 3) canonical; weights: (N, 24); transforms: (..., 24, 4, 4) -> (..., N, 3)."""
+    """Linear blend skinning. points: (N, 3) canonical; weights: (N, 24); transforms: (..., 24, 4, 4) -> (..., N, 3).
+
+    sum_j w_nj A_j [p_n; 1] is bilinear in the weights and the homogeneous point, so it is one (N, 24 * 4) x
+    (24 * 4, batch * 3) matrix product, forward and backward (blending the transforms first and then taking
+    one 3x4 matrix-vector product per point costs a batched product of N tiny matrices each way)."""
     homogeneous = torch.cat([points, torch.ones_like(points[:, :1])], dim=1)
-    blended = _blend_points_first(weights, transforms)  # (N, batch, 3, 4)
-    # one matrix-vector product per point over the whole batch: in the batch-first layout it is a third slower
-    posed = (blended.reshape(len(points), -1, 4) @ homogeneous[:, :, None]).reshape(len(points), -1, 3)
+    lifted = (weights[:, :, None] * homogeneous[:, None, :]).reshape(len(points), NUM_JOINTS * 4)
+    blocks = transforms[..., :3, :].reshape(-1, NUM_JOINTS, 3, 4).permute(1, 3, 0, 2).reshape(NUM_JOINTS * 4, -1)
+    posed = (lifted @ blocks).reshape(len(points), -1, 3)
     return posed.transpose(0, 1).reshape(transforms.shape[:-3] + (len(points), 3))
 
 

@@ -172,6 +172,24 @@ def test_skinning_gradcheck_wrt_pose_translation_and_gaussians(scale: float) -> 
     assert torch.autograd.gradcheck(posed_gaussians, (first_pose, first_transl, points, quats))
 
 
+def test_skin_points_matches_per_point_blend_over_batch_dimensions() -> None:
+    generator = torch.Generator().manual_seed(8)
+    joints = _rest_joints(generator)
+    pose = 0.6 * torch.randn(6, NUM_JOINTS, 3, generator=generator, dtype=torch.float64)
+    transforms = forward_kinematics(pose, joints, torch.randn(6, 3, generator=generator, dtype=torch.float64)).reshape(2, 3, NUM_JOINTS, 4, 4)
+    points = torch.randn(40, 3, generator=generator, dtype=torch.float64)
+    weights = _sparse_weights(40, generator).requires_grad_()
+
+    posed = skin_points(points, weights, transforms)
+
+    assert posed.shape == (2, 3, 40, 3)
+    for batch in range(2):
+        for frame in range(3):
+            blended = torch.einsum("nj,jab->nab", weights, transforms[batch, frame])
+            torch.testing.assert_close(posed[batch, frame], (blended[:, :3, :3] @ points[..., None])[..., 0] + blended[:, :3, 3])
+    assert torch.autograd.gradcheck(lambda w: skin_points(points, w, transforms[0, :2]), (weights,))
+
+
 def test_quaternion_round_trip_in_every_branch() -> None:
     generator = torch.Generator().manual_seed(7)
     quats = torch.nn.functional.normalize(torch.randn(200, 4, generator=generator, dtype=torch.float64), dim=-1)
