@@ -9,9 +9,11 @@ SAMPLE/train is a `make-sample` training folder (its subject.json names the phen
 start: the fitted phenotype, the silhouette distance to the masks and the phenotype prior (pixels, the two
 terms the fit trades), the fitted rest joints' mean distance from the subject's, and how far the posed
 hips and knees sit above (+) or below (-) the subject's, in the world, centimetres (left and right averaged).
-Then the loss each default start was compared by (`BodyFit.start_losses`). `--poses` fits every frame's pose
-with the body, as `train-initial --refine-poses` does for estimated poses (a folder such as the study's
-`train-noisy`; its subject.json is the sample's), and the starts are compared with their poses corrected.
+Then the loss each default start was compared by (`BodyFit.start_losses`). `--each-start` adds a row per
+default start continued alone through the whole fit: what keeping another start would have given. `--poses`
+fits every frame's pose with the body, as `train-initial --refine-poses` does for estimated poses (a folder
+such as the study's `train-noisy`; its subject.json is the sample's), and the starts are compared with their
+poses corrected.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ def main() -> None:
     parser.add_argument("--phenotype-prior", type=float, default=BodyFitConfig.phenotype_prior, help="BodyFitConfig.phenotype_prior, pixels")
     parser.add_argument("--points", type=int, default=BodyFitConfig.points, help="template points compared (BodyFitConfig.points)")
     parser.add_argument("--poses", action="store_true", help="fit every frame's pose with the body (estimated poses)")
+    parser.add_argument("--each-start", action="store_true", help="also each default start continued alone through the whole fit")
     args = parser.parse_args()
     video = load_people_snapshot(args.train)
     truth = json.loads((args.train / "subject.json").read_text())["phenotype"]
@@ -60,6 +63,10 @@ def main() -> None:
         "the subject's own, free": (own_offset, replace(default, starts=(truth,))),
         "the subject's own, held": (own_offset, replace(default, starts=(truth,), start_steps=1, phenotype_rate=0.0)),
     }
+    if args.each_start:
+        for start in default.starts:
+            label = ", ".join(f"{key} {value}" for key, value in start.items()) or "the middle"
+            starts[f"start {label} alone"] = (starts["the default starts"][0], replace(default, starts=(start,)))
     print(f"subject: {', '.join(f'{name} {truth[name]:.2f}' for name in PHENOTYPES)}")
     print(f"| start | fitted {', '.join(PHENOTYPES)} | silhouette (px) | prior (px) | rest joints | hips | knees |")
     print("|---|---|---|---|---|---|---|")
