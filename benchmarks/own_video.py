@@ -27,7 +27,8 @@ share of Gaussians longer than 3 cm; the comparison pictures are in each workspa
 the training frames' joints land from the true ones in the image, with `prepare`'s poses and with the poses
 the workspace trained on (fitted with the body and refined in training): the mean over joints and frames and
 the worst frame, in pixels (the fitted body is not the subject's, so its joints need not meet the truth's
-even at exact poses; `--fitted-body` prints how far they lie there).
+even at exact poses; `--fitted-body` prints how far they lie there), and the PSNR of the training frames at
+the poses the avatar trained on, against the true frames (the mean, the first frame and the worst).
 """
 
 from __future__ import annotations
@@ -41,6 +42,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from avatarperfect_cli.avatar.model import Avatar
+from avatarperfect_cli.avatar.rendering import render_avatar
 from avatarperfect_cli.body import forward_kinematics, load_body_template, posed_joints
 from avatarperfect_cli.datasets import VideoDataset, load_people_snapshot, write_people_snapshot
 from avatarperfect_cli.datasets.people_snapshot import FrameRange
@@ -48,6 +51,7 @@ from avatarperfect_cli.io.video import frame_writer
 from avatarperfect_cli.io.workspace import open_workspace
 from avatarperfect_cli.sample.generate import make_sample
 from avatarperfect_cli.stages.workspace_data import body_template, load_video, transl_offset
+from avatarperfect_cli.training import metrics
 from avatarperfect_cli.training.silhouette import project
 from benchmarks.cut_frames import cut_frames
 from benchmarks.mask_error import long_shares
@@ -117,6 +121,17 @@ def joint_errors(sample_train: Path, prepared: Path, workspace: Path, frames: Fr
         name: (image_joints(video, fitted.rest_joints) - expected).norm(dim=-1).mean(dim=-1)
         for name, video in (("prepare's poses", given), ("the workspace's poses", trained))
     }
+
+
+def training_psnr(workspace: Path, truth_test: Path, frames: FrameRange) -> torch.Tensor:
+    """(T,) PSNR (dB) of the workspace's avatar in its training frames, at the poses it trained on, against the
+    true frames (`truth_test`: the sample's images through `prepare`'s camera)."""
+    opened = open_workspace(workspace)
+    avatar, trained = Avatar.load(opened.require_avatar()), load_video(opened, with_images=False)
+    truth = load_people_snapshot(truth_test, frames)
+    with torch.no_grad():
+        renders = [render_avatar(avatar, trained.body_pose[t], trained.transl[t], truth.camera, torch.ones(3)).image for t in range(len(truth))]
+    return torch.tensor([metrics.psnr(render.clamp(0, 1), image) for render, image in zip(renders, truth.images)])
 
 
 def scores(workspace: Path, test: Path) -> dict:
@@ -194,6 +209,9 @@ def main() -> None:
         worst = int(errors.argmax())
         print(f"training frames' joints with {name}: {errors.mean():.2f} px from the truth on average, "
               f"{errors[worst]:.2f} px at frame {training.start + worst * training.step}")
+    psnrs = training_psnr(out / "ws-own", out / "truth-test", training)
+    print(f"training frames at the poses the avatar trained on: {psnrs.mean():.2f} dB against the true frames, "
+          f"{psnrs[0]:.2f} dB in the first, {psnrs.min():.2f} dB at frame {training.start + int(psnrs.argmin()) * training.step}")
     if args.fitted_body:
         errors = joint_errors(train, out / "prepared", fitted_body, training)["the workspace's poses"]
         print(f"training frames' joints on the fitted body at the exact poses: {errors.mean():.2f} px from the truth on average")

@@ -9,6 +9,7 @@ import math
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -168,3 +169,38 @@ def test_the_user_hears_where_the_frame_cuts_the_person_off() -> None:
     masks[1:3, 31:, 12:18] = True  # feet below the frame in two frames
     masks[2, 10:20, :10] = True  # and an arm off its left edge in one
     assert cut_off_line(masks).startswith("the frame cuts the person off at the bottom in 2, left in 1 of 4 frames:")
+
+
+class _CountingPose:
+    """MediaPipe's Pose solution as `detect_landmarks` uses it: frames whose pixels are all 0 show nobody, others a
+    person whose landmarks all lie at x = the number of the `process` call that found them (0, 1, ...)."""
+
+    calls: list[int] = []
+
+    def __init__(self, **settings) -> None:
+        type(self).calls = []
+
+    def __enter__(self) -> _CountingPose:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        return None
+
+    def process(self, frame: np.ndarray) -> SimpleNamespace:
+        call = len(self.calls)
+        self.calls.append(int(frame[0, 0, 0]))
+        if not frame.any():
+            return SimpleNamespace(pose_landmarks=None, pose_world_landmarks=None, segmentation_mask=None)
+        points = SimpleNamespace(landmark=[SimpleNamespace(x=call, y=0.5, z=0.0, visibility=1.0)] * NUM_LANDMARKS)
+        return SimpleNamespace(pose_landmarks=points, pose_world_landmarks=points, segmentation_mask=np.ones(frame.shape[:2]))
+
+
+def test_a_person_found_afresh_is_found_again_from_the_landmarks() -> None:
+    """The first frame, and the first after frames without a person, are processed twice and the second result
+    kept: MediaPipe crops a person it follows by the landmarks it found, a new one by its detector's box."""
+    shows_person = [True, True, False, False, True, True]
+    frames = [np.full((4, 4, 3), (index + 1) * person, np.uint8) for index, person in enumerate(shows_person)]
+    landmarks, found = detect_landmarks(SimpleNamespace(Pose=_CountingPose), frames, progress=False)
+    assert found.tolist() == shows_person
+    assert _CountingPose.calls == [1, 1, 2, 0, 0, 5, 5, 6]  # frames by their first pixel, nobody = 0
+    np.testing.assert_array_equal(landmarks.image[:, 0, 0] / 4, [1, 2, 6, 7])  # the calls whose results were kept
