@@ -7,7 +7,9 @@ model that ships inside the wheel; complexities 0 and 2 would download theirs at
 person's 33 landmarks, in the image and in metres, and a person segmentation (the mask). Frames where it
 finds nobody are left out, and so are detections whose landmarks' median visibility is below
 MIN_MEDIAN_VISIBILITY (on video noise it "finds" people with median visibilities of 0.25-0.37 and empty
-masks; the synthetic subject's frames score 0.98-0.99). The landmarks are mapped onto SMPL's 24 joints
+masks; the synthetic subject's frames score 0.98-0.99), and detections whose torso turns more than
+MAX_TORSO_TURN_DEGREES from the clip's upright (MediaPipe following the upper body of a person whose head
+is out of the picture, as if lying on its side). The landmarks are mapped onto SMPL's 24 joints
 (LANDMARK_WEIGHTS) and `body.landmark_fit` fits the anny template's skeleton to them, all frames at once.
 
 The folder: images/, masks/ (0/1 .npy), cameras.npz (the assumed field of view unless given, principal
@@ -52,6 +54,11 @@ INSTALL_HINT = (
 )
 NUM_LANDMARKS = 33
 MIN_MEDIAN_VISIBILITY = 0.5  # a detection whose landmarks' median visibility is below this finds no person
+# a detection whose torso (the hips' centre to the shoulders' centre, in the image) turns more than this many
+# degrees from the clip's mean direction is left out: MediaPipe following part of the person (a clip with the
+# head above the frame: upper-body masks and a torso lying on its side, 102-104 degrees off; the whole person
+# within 5 degrees in every frame of a turn-around)
+MAX_TORSO_TURN_DEGREES = 60.0
 # MediaPipe's world landmarks put limbs about 2/3 as deep as wide or tall (least-squares slopes against the
 # truth on renders of the anny sample subject: depth 0.56, width 0.80, height 0.86): depths are stretched by
 # this before the limbs' directions are taken from them.
@@ -100,6 +107,10 @@ class Landmarks:
     world: np.ndarray
     masks: np.ndarray
 
+    def select(self, keep: np.ndarray) -> Landmarks:
+        """The frames where keep (T,) bool is true."""
+        return Landmarks(self.image[keep], self.visibility[keep], self.world[keep], self.masks[keep])
+
 
 def prepare(video: Path, out: Path, settings: PrepareSettings | None = None, progress: bool = True) -> Path:
     """Write the People-Snapshot folder `out` for the person in `video` (see the module doc); returns `out`.
@@ -122,6 +133,18 @@ def prepare(video: Path, out: Path, settings: PrepareSettings | None = None, pro
     if not found.all():
         missing = int((~found).sum())
         console.print(f"{video}: no person found in {missing} of {len(found)} frames; they are left out", soft_wrap=True)
+    turned = turned_torsos(landmarks)
+    if turned.all():
+        raise InputFileError(video, f"in no frame is the person's torso within {MAX_TORSO_TURN_DEGREES:g}° of the clip's upright")
+    if turned.any():
+        console.print(
+            f"{video}: in {int(turned.sum())} of {len(found)} frames the person's torso turns more than "
+            f"{MAX_TORSO_TURN_DEGREES:g}° from the clip's upright (MediaPipe followed part of the person, e.g. with "
+            "the head out of the picture); they are left out",
+            soft_wrap=True,
+        )
+        landmarks = landmarks.select(~turned)
+        found[np.flatnonzero(found)[turned]] = False
     camera = assumed_camera(width, height, settings.fov_degrees)
     cut_off = cut_off_line(landmarks.masks)
     if cut_off:
@@ -158,6 +181,19 @@ def cut_off_line(masks: np.ndarray) -> str | None:
         f"the frame cuts the person off at the {', '.join(cut)} of {len(masks)} frames: the fits leave what lies past "
         "the edge open, but a body wholly in the picture fits best"
     )
+
+
+def turned_torsos(landmarks: Landmarks) -> np.ndarray:
+    """(T,) bool: the frames whose torso, the hips' centre to the shoulders' centre in the image, turns more
+    than MAX_TORSO_TURN_DEGREES from the mean of all frames' torso directions (a majority of frames decides
+    what is upright, so a camera on its side keeps them all)."""
+    torso = landmarks.image[:, [11, 12]].mean(axis=1) - landmarks.image[:, [23, 24]].mean(axis=1)  # (T, 2)
+    direction = torso / np.maximum(np.linalg.norm(torso, axis=1, keepdims=True), 1e-9)
+    mean = direction.sum(axis=0)
+    if not np.linalg.norm(mean) > 0:
+        return np.zeros(len(torso), bool)
+    cosine = direction @ (mean / np.linalg.norm(mean))
+    return cosine < math.cos(math.radians(MAX_TORSO_TURN_DEGREES))
 
 
 def check_video(video: Path) -> None:

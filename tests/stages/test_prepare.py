@@ -29,7 +29,7 @@ from avatarperfect_cli.sample.texture import get_preset
 from avatarperfect_cli.stages import prepare as prepare_stage
 from avatarperfect_cli.stages.prepare import (
     NUM_LANDMARKS, Landmarks, PrepareSettings, _pose_solution, cut_off_line, detect_landmarks, joint_targets, prepare,
-    read_video_frames,
+    read_video_frames, turned_torsos,
 )  # fmt: skip
 
 HAS_MEDIAPIPE = importlib.util.find_spec("mediapipe") is not None
@@ -204,3 +204,27 @@ def test_a_person_found_afresh_is_found_again_from_the_landmarks() -> None:
     assert found.tolist() == shows_person
     assert _CountingPose.calls == [1, 1, 2, 0, 0, 5, 5, 6]  # frames by their first pixel, nobody = 0
     np.testing.assert_array_equal(landmarks.image[:, 0, 0] / 4, [1, 2, 6, 7])  # the calls whose results were kept
+
+
+def _torso_landmarks(torso_degrees: list[float]) -> Landmarks:
+    """Frames whose torso (hips' centre to shoulders' centre, 100 px) turns by the given angles from image up."""
+    image = np.zeros((len(torso_degrees), NUM_LANDMARKS, 2))
+    for frame, degrees in enumerate(torso_degrees):
+        angle = math.radians(degrees)
+        hips, shoulders = np.array([200.0, 300.0]), np.array([200.0 + 100 * math.sin(angle), 300.0 - 100 * math.cos(angle)])
+        image[frame, [23, 24]] = hips + [[-15, 0], [15, 0]]
+        image[frame, [11, 12]] = shoulders + [[-20, 0], [20, 0]]
+    count = len(torso_degrees)
+    return Landmarks(image, np.ones((count, NUM_LANDMARKS)), np.zeros((count, NUM_LANDMARKS, 3)), np.zeros((count, 4, 4), bool))
+
+
+def test_frames_whose_torso_lies_on_its_side_are_found() -> None:
+    """More than 60° from the clip's mean torso direction is turned; the mean, not the image, says what is up."""
+    upright = [0.0, 5.0, -5.0, 10.0, -8.0, 3.0]
+    assert not turned_torsos(_torso_landmarks(upright)).any()
+    flagged = turned_torsos(_torso_landmarks([103.0, 102.0] + upright + [50.0]))
+    assert flagged.tolist() == [True, True] + [False] * len(upright) + [False]
+    assert not turned_torsos(_torso_landmarks([90.0 + degrees for degrees in upright])).any()  # a camera on its side
+    landmarks = _torso_landmarks([103.0] + upright)
+    kept = landmarks.select(~turned_torsos(landmarks))
+    np.testing.assert_array_equal(kept.image, landmarks.image[1:])
