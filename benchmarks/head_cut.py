@@ -58,9 +58,10 @@ def main() -> None:
     write_head_cut(args.out / "video.mp4", cut, args.rows, args.every)
     landmarks, found = prepare_stage.detect_landmarks(prepare_stage._pose_solution(), prepare_stage.read_video_frames(cut, 1)[0], progress=False)
     turned = prepare_stage.turned_torsos(landmarks)
-    torso = landmarks.image[:, [11, 12]].mean(axis=1) - landmarks.image[:, [23, 24]].mean(axis=1)
+    torso = prepare_stage.torsos(landmarks)
     turns = np.degrees(np.arctan2(np.abs(torso[:, 0]), -torso[:, 1]))
-    areas = landmarks.masks.reshape(len(landmarks.masks), -1).sum(axis=1) / np.median(landmarks.masks.reshape(len(landmarks.masks), -1).sum(axis=1))
+    areas = landmarks.masks.reshape(len(landmarks.masks), -1).sum(axis=1)
+    areas = areas / np.median(areas)
     print(f"MediaPipe found the person in {int(found.sum())} of {len(found)} frames; torso turns from image up "
           f"{turns[~turned].min():.0f}-{turns[~turned].max():.0f}° in the frames kept; left out (turn, mask area against the "
           f"median): {', '.join(f'{turn:.0f}° {area:.2f}' for turn, area in zip(turns[turned], areas[turned])) or 'none'}")

@@ -183,11 +183,16 @@ def cut_off_line(masks: np.ndarray) -> str | None:
     )
 
 
+def torsos(landmarks: Landmarks) -> np.ndarray:
+    """(T, 2) pixels: each frame's torso in the image, from the hips' centre to the shoulders' centre."""
+    return landmarks.image[:, [11, 12]].mean(axis=1) - landmarks.image[:, [23, 24]].mean(axis=1)
+
+
 def turned_torsos(landmarks: Landmarks) -> np.ndarray:
-    """(T,) bool: the frames whose torso, the hips' centre to the shoulders' centre in the image, turns more
-    than MAX_TORSO_TURN_DEGREES from the mean of all frames' torso directions (a majority of frames decides
-    what is upright, so a camera on its side keeps them all)."""
-    torso = landmarks.image[:, [11, 12]].mean(axis=1) - landmarks.image[:, [23, 24]].mean(axis=1)  # (T, 2)
+    """(T,) bool: the frames whose torso (`torsos`) turns more than MAX_TORSO_TURN_DEGREES from the mean of
+    all frames' torso directions (a majority of frames decides what is upright, so a camera on its side keeps
+    them all)."""
+    torso = torsos(landmarks)
     direction = torso / np.maximum(np.linalg.norm(torso, axis=1, keepdims=True), 1e-9)
     mean = direction.sum(axis=0)
     if not np.linalg.norm(mean) > 0:

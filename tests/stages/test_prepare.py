@@ -228,3 +228,16 @@ def test_frames_whose_torso_lies_on_its_side_are_found() -> None:
     landmarks = _torso_landmarks([103.0] + upright)
     kept = landmarks.select(~turned_torsos(landmarks))
     np.testing.assert_array_equal(kept.image, landmarks.image[1:])
+
+
+def test_a_clip_with_no_upright_torso_is_refused_in_one_line_and_writes_nothing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Torsos leaning 80° either way: none lies within 60° of their mean direction (upright)."""
+    write_noise_video(tmp_path / "clip.mp4", frames=4, size=32)
+    turns = [80.0, -80.0, 80.0, -80.0]
+    monkeypatch.setattr(prepare_stage, "_pose_solution", lambda: None)
+    monkeypatch.setattr(prepare_stage, "detect_landmarks", lambda *args, **kwargs: (_torso_landmarks(turns), np.ones(4, bool)))
+    result = CliRunner().invoke(app, ["prepare", str(tmp_path / "clip.mp4"), str(tmp_path / "out")])
+    assert result.exit_code == 2, result.output
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and "in no frame is the person's torso within 60° of the clip's upright" in lines[0], result.output
+    assert not (tmp_path / "out").exists()
