@@ -437,8 +437,9 @@ class Harness:
             outcome.state = "new"  # a stage whose result is its outputs alone (checked below) finished
         elif now == before or _old_but_refreshed(stage, now, before, reference.after):
             # a run that ended well and recomputed its refreshed folders (their last bits follow the threads'
-            # timing when the cores are shared) left the new state; a killed one, the old state refreshed
-            finished = status == 0 and now != before and (written or not stage.outputs)
+            # timing when the cores are shared) left the new state, and so did one the signal ended after it had
+            # written all its outputs whole (the interpreter exiting); a run killed before, the old state refreshed
+            finished = now != before and (written or (status == 0 and not stage.outputs))
             outcome.state = "new" if finished else "old"
         elif _after_some_steps(stage, now, before, reference.after):
             damage = self.check_workspace(workspace, folder)
