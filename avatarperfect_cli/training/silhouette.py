@@ -16,6 +16,7 @@ subject's rest joints 13 cm from the truth instead of 0.5 cm.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numba
@@ -129,10 +130,8 @@ def silhouettes(video: VideoDataset, frames: torch.Tensor, resolution: int, cont
 
 
 def project(points: torch.Tensor, camera: Camera) -> torch.Tensor:
-    """(..., 3) world points, metres -> (..., 2) pixel coordinates (x right, y down; pixel centres at +0.5).
-
-    Written out per coordinate: a (..., 3) x (3, 3) matmul is several times slower on the CPU, forward and
-    backward, and the fits project every step."""
+    """(..., 3) world points, metres -> (..., 2) pixel coordinates (x right, y down; pixel centres at +0.5),
+    differentiable: the projection the silhouette kernels make (`_project_kernel`), depth clamped alike."""
     rotation, translation, K = camera.world_to_camera[:3, :3], camera.world_to_camera[:3, 3], camera.K
     x, y, z = points.unbind(-1)
     in_camera = [x * row[0] + y * row[1] + z * row[2] + shift for row, shift in zip(rotation, translation)]
@@ -141,26 +140,146 @@ def project(points: torch.Tensor, camera: Camera) -> torch.Tensor:
     return torch.stack([u / depth, v / depth], dim=-1)
 
 
-def huber_distance(distance: torch.Tensor, delta: float) -> torch.Tensor:
-    return torch.where(distance < delta, 0.5 * distance * distance / delta, distance - 0.5 * delta)
-
-
 def silhouette_loss(posed: torch.Tensor, data: Silhouettes, huber: float) -> torch.Tensor:
     """(T,) each compared frame's mean outside distance of its posed points plus mean coverage distance of
-    its contour pixels, pixels. posed: (T, P, 3) template points posed by the frames' poses, world frame, metres."""
-    pixels = project(posed, data.camera)  # (T, P, 2)
-    size = torch.tensor([data.camera.width, data.camera.height], dtype=pixels.dtype)
-    grid = (2.0 * pixels / size - 1.0)[:, :, None]  # (T, P, 1, 2)
-    outside = F.grid_sample(data.outside, grid, mode="bilinear", padding_mode="border", align_corners=False)
-    # beyond the image the border's distance is a lower bound: add how far past the border a point is
-    beyond = (pixels - pixels.clamp(torch.zeros_like(size), size)).norm(dim=-1)
-    x, y = pixels.unbind(-1)
-    top, bottom, left, right = (data.cut[:, None, side] for side in range(4))
-    unseen = (y < 0) & top | (y > size[1]) & bottom | (x < 0) & left | (x > size[0]) & right
-    outside_loss = huber_distance(torch.where(unseen, 0.0, outside[:, 0, :, 0] + beyond), huber).mean(dim=1)
-    nearest = _nearest_points(pixels, data)
-    coverage = (data.contours - pixels.gather(1, nearest[..., None].expand(-1, -1, 2))).norm(dim=-1)
-    return outside_loss + huber_distance(coverage, huber).mean(dim=1)
+    its contour pixels, pixels, Huber-robust beyond `huber` pixels. posed: (T, P, 3) template points posed by
+    the frames' poses, world frame, metres.
+
+    Computed with its gradient in one pass of numba kernels (`_silhouette_kernel`); the gradient is kept for
+    the backward, which only scales it by each frame's incoming gradient."""
+    return _SilhouetteLoss.apply(posed, data, huber)
+
+
+class _SilhouetteLoss(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx: Any, posed: torch.Tensor, data: Silhouettes, huber: float) -> torch.Tensor:
+        camera = data.camera
+        rotation, translation = (t.detach().cpu().double().numpy() for t in (camera.world_to_camera[:3, :3], camera.world_to_camera[:3, 3]))
+        K = camera.K.detach().cpu().double().numpy()
+        points = posed.detach().cpu().double().numpy()
+        pixels = _project_kernel(points, rotation, translation, K)
+        contours = data.contours.cpu().double().numpy()
+        nearest = _nearest_kernel(pixels, contours, camera.width, camera.height, _NEAREST_CELL)
+        loss, gradient = _silhouette_kernel(
+            points, pixels, rotation, translation, K, data.outside[:, 0].cpu().numpy(), contours, data.cut.cpu().numpy(), nearest,
+            float(huber), float(camera.width), float(camera.height),
+        )  # fmt: skip
+        ctx.save_for_backward(torch.from_numpy(gradient).to(posed.device, posed.dtype))
+        return torch.from_numpy(loss).to(posed.device, posed.dtype)
+
+    @staticmethod
+    def backward(ctx: Any, grad_loss: torch.Tensor) -> tuple[torch.Tensor, None, None]:
+        (gradient,) = ctx.saved_tensors
+        return grad_loss[:, None, None] * gradient, None, None
+
+
+# The nearest depth a projected point may have, metres (as `project` clamps it).
+_MIN_DEPTH = 1e-3
+
+
+@numba.njit(cache=True, parallel=True)
+def _project_kernel(points: np.ndarray, rotation: np.ndarray, translation: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(T, P, 2) pixels of world points (T, P, 3), as `project`."""
+    frames, count = points.shape[0], points.shape[1]
+    pixels = np.empty((frames, count, 2))
+    for frame in numba.prange(frames):
+        for index in range(count):
+            x, y, z = points[frame, index, 0], points[frame, index, 1], points[frame, index, 2]
+            c0 = rotation[0, 0] * x + rotation[0, 1] * y + rotation[0, 2] * z + translation[0]
+            c1 = rotation[1, 0] * x + rotation[1, 1] * y + rotation[1, 2] * z + translation[1]
+            c2 = rotation[2, 0] * x + rotation[2, 1] * y + rotation[2, 2] * z + translation[2]
+            depth = max(K[2, 0] * c0 + K[2, 1] * c1 + K[2, 2] * c2, _MIN_DEPTH)
+            pixels[frame, index, 0] = (K[0, 0] * c0 + K[0, 1] * c1 + K[0, 2] * c2) / depth
+            pixels[frame, index, 1] = (K[1, 0] * c0 + K[1, 1] * c1 + K[1, 2] * c2) / depth
+    return pixels
+
+
+@numba.njit(cache=True, inline="always")
+def _huber(distance: float, delta: float) -> tuple[float, float]:
+    """The Huber loss of a distance and its derivative."""
+    if distance < delta:
+        return 0.5 * distance * distance / delta, distance / delta
+    return distance - 0.5 * delta, 1.0
+
+
+@numba.njit(cache=True, inline="always")
+def _field(outside: np.ndarray, frame: int, row: int, column: int) -> float:
+    """A distance-field value, zero beyond the field (as grid_sample's corners outside it)."""
+    if 0 <= row < outside.shape[1] and 0 <= column < outside.shape[2]:
+        return outside[frame, row, column]
+    return 0.0
+
+
+@numba.njit(cache=True, parallel=True)
+def _silhouette_kernel(
+    points: np.ndarray, pixels: np.ndarray, rotation: np.ndarray, translation: np.ndarray, K: np.ndarray, outside: np.ndarray,
+    contours: np.ndarray, cut: np.ndarray, nearest: np.ndarray, huber: float, width: float, height: float,
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Each frame's loss (T,) as `silhouette_loss` and its gradient (T, P, 3) in the world points.
+
+    points (T, P, 3) world; pixels (T, P, 2) their projections; outside (T, h, w) distance fields sampled as
+    grid_sample does (bilinear, border padding, align_corners=False: pixel x sits at column x - 0.5);
+    contours (T, M, 2) pixels and nearest (T, M) the index of each one's nearest projected point."""
+    frames, count, contour_count = points.shape[0], points.shape[1], contours.shape[1]
+    loss = np.zeros(frames)
+    gradient = np.empty((frames, count, 3))
+    for frame in numba.prange(frames):
+        pixel_gradient = np.zeros((count, 2))
+        total = 0.0
+        for index in range(count):
+            u, v = pixels[frame, index, 0], pixels[frame, index, 1]
+            if (v < 0.0 and cut[frame, 0]) or (v > height and cut[frame, 1]) or (u < 0.0 and cut[frame, 2]) or (u > width and cut[frame, 3]):
+                continue  # past an edge the mask touches: unseen, costs nothing
+            # the field sampled bilinearly at the clipped coordinate; no gradient where clipped
+            column, row = u - 0.5, v - 0.5
+            column_slope = 1.0 if 0.0 <= column <= width - 1.0 else 0.0
+            row_slope = 1.0 if 0.0 <= row <= height - 1.0 else 0.0
+            column, row = min(max(column, 0.0), width - 1.0), min(max(row, 0.0), height - 1.0)
+            left, top = int(np.floor(column)), int(np.floor(row))
+            fx, fy = column - left, row - top
+            nw, ne = _field(outside, frame, top, left), _field(outside, frame, top, left + 1)
+            sw, se = _field(outside, frame, top + 1, left), _field(outside, frame, top + 1, left + 1)
+            sampled = nw * (1 - fx) * (1 - fy) + ne * fx * (1 - fy) + sw * (1 - fx) * fy + se * fx * fy
+            d_column = ((ne - nw) * (1 - fy) + (se - sw) * fy) * column_slope
+            d_row = ((sw - nw) * (1 - fx) + (se - ne) * fx) * row_slope
+            # how far past the image's border the point lies (the border's distance is a lower bound)
+            past_u = u - min(max(u, 0.0), width)
+            past_v = v - min(max(v, 0.0), height)
+            beyond = np.sqrt(past_u * past_u + past_v * past_v)
+            if beyond > 0.0:
+                d_column += past_u / beyond
+                d_row += past_v / beyond
+            value, slope = _huber(sampled + beyond, huber)
+            total += value / count
+            pixel_gradient[index, 0] += slope * d_column / count
+            pixel_gradient[index, 1] += slope * d_row / count
+        for query in range(contour_count):
+            index = nearest[frame, query]
+            dx = contours[frame, query, 0] - pixels[frame, index, 0]
+            dy = contours[frame, query, 1] - pixels[frame, index, 1]
+            distance = np.sqrt(dx * dx + dy * dy)
+            value, slope = _huber(distance, huber)
+            total += value / contour_count
+            if distance > 0.0:
+                pixel_gradient[index, 0] -= slope * dx / distance / contour_count
+                pixel_gradient[index, 1] -= slope * dy / distance / contour_count
+        loss[frame] = total
+        for index in range(count):  # through the projection to the world point
+            gu, gv = pixel_gradient[index, 0], pixel_gradient[index, 1]
+            x, y, z = points[frame, index, 0], points[frame, index, 1], points[frame, index, 2]
+            c0 = rotation[0, 0] * x + rotation[0, 1] * y + rotation[0, 2] * z + translation[0]
+            c1 = rotation[1, 0] * x + rotation[1, 1] * y + rotation[1, 2] * z + translation[1]
+            c2 = rotation[2, 0] * x + rotation[2, 1] * y + rotation[2, 2] * z + translation[2]
+            projected_depth = K[2, 0] * c0 + K[2, 1] * c1 + K[2, 2] * c2
+            depth = max(projected_depth, _MIN_DEPTH)
+            g_u, g_v = gu / depth, gv / depth
+            g_w = -(gu * pixels[frame, index, 0] + gv * pixels[frame, index, 1]) / depth if projected_depth >= _MIN_DEPTH else 0.0
+            g_c0 = K[0, 0] * g_u + K[1, 0] * g_v + K[2, 0] * g_w
+            g_c1 = K[0, 1] * g_u + K[1, 1] * g_v + K[2, 1] * g_w
+            g_c2 = K[0, 2] * g_u + K[1, 2] * g_v + K[2, 2] * g_w
+            for k in range(3):
+                gradient[frame, index, k] = rotation[0, k] * g_c0 + rotation[1, k] * g_c1 + rotation[2, k] * g_c2
+    return loss, gradient
 
 
 # Side of the grid cells, pixels, in which `_nearest_kernel` files the projected points.
@@ -214,14 +333,6 @@ def _nearest_kernel(points: np.ndarray, queries: np.ndarray, width: int, height:
                     break
             nearest[frame, query] = best_index
     return nearest
-
-
-def _nearest_points(pixels: torch.Tensor, data: Silhouettes) -> torch.Tensor:
-    """(T, M) index of the projected point (pixels (T, P, 2)) nearest to each contour pixel."""
-    points = pixels.detach().numpy().astype(np.float64)
-    queries = data.contours.numpy().astype(np.float64)
-    return torch.from_numpy(_nearest_kernel(points, queries, data.camera.width, data.camera.height, _NEAREST_CELL))
-
 
 
 def surface_points(vertices: torch.Tensor, faces: torch.Tensor, count: int) -> torch.Tensor:

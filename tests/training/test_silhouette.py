@@ -1,5 +1,6 @@
-"""The silhouette distances: the projection and the nearest-point kernel against independent references, and
-the distances of a posed body against its own masks and against moved masks."""
+"""The silhouette distances: the projection, the nearest-point kernel and the fused loss kernel against
+independent references (dense PyTorch, float64, gradcheck), and the distances of a posed body against its own
+masks and against moved masks."""
 
 from __future__ import annotations
 
@@ -7,11 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from avatarperfect_cli.body import forward_kinematics, load_body_template, skin_points
 from avatarperfect_cli.datasets import FrameRange, VideoDataset, load_people_snapshot
 from avatarperfect_cli.render import Camera
-from avatarperfect_cli.training.silhouette import _nearest_kernel, project, silhouette_loss, silhouettes
+from avatarperfect_cli.training.silhouette import Silhouettes, _nearest_kernel, project, silhouette_loss, silhouettes
 
 SAMPLE = Path(__file__).resolve().parents[2] / "examples" / "sample" / "train"
 
@@ -48,6 +50,65 @@ def test_nearest_kernel_matches_brute_force() -> None:
     distances = np.linalg.norm(queries[:, :, None] - points[:, None], axis=-1)
     chosen = np.take_along_axis(distances, nearest[..., None], axis=2)[..., 0]
     np.testing.assert_allclose(chosen, distances.min(axis=2), rtol=0, atol=1e-12)
+
+
+def _reference_loss(posed: torch.Tensor, data: Silhouettes, huber: float) -> torch.Tensor:
+    """`silhouette_loss` in dense PyTorch ops (autograd gives its gradient): the outside distances sampled by
+    grid_sample, the coverage distances by brute-force nearest points."""
+    pixels = project(posed, data.camera)
+    size = torch.tensor([data.camera.width, data.camera.height], dtype=pixels.dtype)
+    grid = (2.0 * pixels / size - 1.0)[:, :, None]
+    sampled = F.grid_sample(data.outside.to(pixels.dtype), grid, mode="bilinear", padding_mode="border", align_corners=False)[:, 0, :, 0]
+    beyond = (pixels - pixels.clamp(torch.zeros_like(size), size)).norm(dim=-1)
+    x, y = pixels.unbind(-1)
+    top, bottom, left, right = (data.cut[:, None, side] for side in range(4))
+    unseen = (y < 0) & top | (y > size[1]) & bottom | (x < 0) & left | (x > size[0]) & right
+    robust = lambda d: torch.where(d < huber, 0.5 * d * d / huber, d - 0.5 * huber)  # noqa: E731
+    outside = robust(torch.where(unseen, 0.0, sampled + beyond)).mean(dim=1)
+    contours = data.contours.to(pixels.dtype)
+    nearest = torch.cdist(contours, pixels.detach()).argmin(dim=2)
+    coverage = (contours - pixels.gather(1, nearest[..., None].expand(-1, -1, 2))).norm(dim=-1)
+    return outside + robust(coverage).mean(dim=1)
+
+
+def _random_silhouettes(cut: list[list[bool]]) -> tuple[torch.Tensor, Silhouettes]:
+    """World points (T, 60, 3) float64 in front of `_turned_camera`, some projected past every image edge,
+    and silhouettes with random distance fields, contours and cut edges `cut` (T, 4)."""
+    generator = torch.Generator().manual_seed(3)
+    camera = _turned_camera()
+    frames = len(cut)
+    pixels = torch.rand(frames, 60, 2, dtype=torch.float64, generator=generator) * torch.tensor([160.0, 130.0]) - torch.tensor([20.0, 20.0])
+    depth = 2.0 + torch.rand(frames, 60, 1, dtype=torch.float64, generator=generator)
+    in_camera = torch.cat([(pixels - camera.K[:2, 2]) / torch.diagonal(camera.K)[:2] * depth, depth], dim=-1)
+    rotation, translation = camera.world_to_camera[:3, :3], camera.world_to_camera[:3, 3]
+    posed = (in_camera - translation) @ rotation  # world points whose projections are `pixels`
+    outside = torch.rand(frames, 1, camera.height, camera.width, generator=generator) * 6.0
+    contours = torch.rand(frames, 25, 2, generator=generator) * torch.tensor([float(camera.width), float(camera.height)])
+    data = Silhouettes(camera, torch.zeros(frames, 24, 3), torch.zeros(frames, 3), outside, contours, torch.tensor(cut))
+    return posed, data
+
+
+def test_the_loss_kernel_matches_dense_pytorch_and_its_gradient() -> None:
+    """The fused kernel against the dense reference in float64, loss and gradient, with points inside the
+    image, past edges the mask touches (unseen) and past edges it does not (charged by how far)."""
+    posed, data = _random_silhouettes([[False] * 4, [True, False, True, False], [False, True, False, True]])
+    for huber in (0.5, 2.0):
+        reference_points = posed.clone().requires_grad_()
+        reference = _reference_loss(reference_points, data, huber)
+        weights = torch.tensor([0.3, -1.2, 2.0], dtype=torch.float64)
+        (reference * weights).sum().backward()
+        kernel_points = posed.clone().requires_grad_()
+        loss = silhouette_loss(kernel_points, data, huber)
+        (loss * weights).sum().backward()
+        assert loss.dtype == torch.float64
+        torch.testing.assert_close(loss, reference.detach(), rtol=1e-10, atol=1e-10)
+        torch.testing.assert_close(kernel_points.grad, reference_points.grad, rtol=1e-8, atol=1e-10)
+        assert float(reference_points.grad.abs().max()) > 1e-3  # the comparison is not of zeros
+
+
+def test_the_loss_kernel_passes_gradcheck() -> None:
+    posed, data = _random_silhouettes([[False, True, False, False], [False] * 4])
+    assert torch.autograd.gradcheck(lambda p: silhouette_loss(p, data, 2.0), posed.clone().requires_grad_(), atol=1e-6)
 
 
 def test_the_true_body_is_nearer_its_masks_than_a_moved_one() -> None:
