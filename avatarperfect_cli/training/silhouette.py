@@ -157,11 +157,11 @@ class _SilhouetteLoss(torch.autograd.Function):
         rotation, translation = (t.detach().cpu().double().numpy() for t in (camera.world_to_camera[:3, :3], camera.world_to_camera[:3, 3]))
         K = camera.K.detach().cpu().double().numpy()
         points = posed.detach().cpu().double().numpy()
-        pixels = _project_kernel(points, rotation, translation, K)
+        pixels, depths = _project_kernel(points, rotation, translation, K)
         contours = data.contours.cpu().double().numpy()
         nearest = _nearest_kernel(pixels, contours, camera.width, camera.height, _NEAREST_CELL)
         loss, gradient = _silhouette_kernel(
-            points, pixels, rotation, translation, K, data.outside[:, 0].cpu().numpy(), contours, data.cut.cpu().numpy(), nearest,
+            pixels, depths, rotation, K, data.outside[:, 0].cpu().numpy(), contours, data.cut.cpu().numpy(), nearest,
             float(huber), float(camera.width), float(camera.height),
         )  # fmt: skip
         ctx.save_for_backward(torch.from_numpy(gradient).to(posed.device, posed.dtype))
@@ -178,20 +178,23 @@ _MIN_DEPTH = 1e-3
 
 
 @numba.njit(cache=True, parallel=True)
-def _project_kernel(points: np.ndarray, rotation: np.ndarray, translation: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """(T, P, 2) pixels of world points (T, P, 3), as `project`."""
+def _project_kernel(
+    points: np.ndarray, rotation: np.ndarray, translation: np.ndarray, K: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(T, P, 2) pixels of world points (T, P, 3), as `project`, and (T, P) their depths before the clamp."""
     frames, count = points.shape[0], points.shape[1]
-    pixels = np.empty((frames, count, 2))
+    pixels, depths = np.empty((frames, count, 2)), np.empty((frames, count))
     for frame in numba.prange(frames):
         for index in range(count):
             x, y, z = points[frame, index, 0], points[frame, index, 1], points[frame, index, 2]
             c0 = rotation[0, 0] * x + rotation[0, 1] * y + rotation[0, 2] * z + translation[0]
             c1 = rotation[1, 0] * x + rotation[1, 1] * y + rotation[1, 2] * z + translation[1]
             c2 = rotation[2, 0] * x + rotation[2, 1] * y + rotation[2, 2] * z + translation[2]
-            depth = max(K[2, 0] * c0 + K[2, 1] * c1 + K[2, 2] * c2, _MIN_DEPTH)
+            depths[frame, index] = K[2, 0] * c0 + K[2, 1] * c1 + K[2, 2] * c2
+            depth = max(depths[frame, index], _MIN_DEPTH)
             pixels[frame, index, 0] = (K[0, 0] * c0 + K[0, 1] * c1 + K[0, 2] * c2) / depth
             pixels[frame, index, 1] = (K[1, 0] * c0 + K[1, 1] * c1 + K[1, 2] * c2) / depth
-    return pixels
+    return pixels, depths
 
 
 @numba.njit(cache=True, inline="always")
@@ -212,15 +215,15 @@ def _field(outside: np.ndarray, frame: int, row: int, column: int) -> float:
 
 @numba.njit(cache=True, parallel=True)
 def _silhouette_kernel(
-    points: np.ndarray, pixels: np.ndarray, rotation: np.ndarray, translation: np.ndarray, K: np.ndarray, outside: np.ndarray,
-    contours: np.ndarray, cut: np.ndarray, nearest: np.ndarray, huber: float, width: float, height: float,
+    pixels: np.ndarray, depths: np.ndarray, rotation: np.ndarray, K: np.ndarray, outside: np.ndarray, contours: np.ndarray,
+    cut: np.ndarray, nearest: np.ndarray, huber: float, width: float, height: float,
 ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """Each frame's loss (T,) as `silhouette_loss` and its gradient (T, P, 3) in the world points.
 
-    points (T, P, 3) world; pixels (T, P, 2) their projections; outside (T, h, w) distance fields sampled as
+    pixels (T, P, 2) and depths (T, P) of the world points (`_project_kernel`); outside (T, h, w) distance fields sampled as
     grid_sample does (bilinear, border padding, align_corners=False: pixel x sits at column x - 0.5);
     contours (T, M, 2) pixels and nearest (T, M) the index of each one's nearest projected point."""
-    frames, count, contour_count = points.shape[0], points.shape[1], contours.shape[1]
+    frames, count, contour_count = pixels.shape[0], pixels.shape[1], contours.shape[1]
     loss = np.zeros(frames)
     gradient = np.empty((frames, count, 3))
     for frame in numba.prange(frames):
@@ -266,11 +269,7 @@ def _silhouette_kernel(
         loss[frame] = total
         for index in range(count):  # through the projection to the world point
             gu, gv = pixel_gradient[index, 0], pixel_gradient[index, 1]
-            x, y, z = points[frame, index, 0], points[frame, index, 1], points[frame, index, 2]
-            c0 = rotation[0, 0] * x + rotation[0, 1] * y + rotation[0, 2] * z + translation[0]
-            c1 = rotation[1, 0] * x + rotation[1, 1] * y + rotation[1, 2] * z + translation[1]
-            c2 = rotation[2, 0] * x + rotation[2, 1] * y + rotation[2, 2] * z + translation[2]
-            projected_depth = K[2, 0] * c0 + K[2, 1] * c1 + K[2, 2] * c2
+            projected_depth = depths[frame, index]
             depth = max(projected_depth, _MIN_DEPTH)
             g_u, g_v = gu / depth, gv / depth
             g_w = -(gu * pixels[frame, index, 0] + gv * pixels[frame, index, 1]) / depth if projected_depth >= _MIN_DEPTH else 0.0
