@@ -23,6 +23,9 @@ _POLAR_SCALING_CHANGE = 1e-2
 # Determinants smaller than this in magnitude are replaced by it (a rank-deficient blend).
 _TINY_DETERMINANT = 1e-30
 SKINNING_BACKENDS = ("auto", "numba", "torch")
+# `skin_points` runs the sparse kernels when no point has more nonzero weights than this (anny's and SMPL's
+# templates: at most 7 and 4), and the dense matrix product otherwise.
+_SPARSE_JOINTS = 8
 
 
 @numba.njit(cache=True)
@@ -423,14 +426,115 @@ def blend_transforms(weights: torch.Tensor, transforms: torch.Tensor) -> torch.T
 def skin_points(points: torch.Tensor, weights: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
     """Linear blend skinning. points: (N, 3) canonical; weights: (N, 24); transforms: (..., 24, 4, 4) -> (..., N, 3).
 
-    sum_j w_nj A_j [p_n; 1] is bilinear in the weights and the homogeneous point, so it is one (N, 24 * 4) x
-    (24 * 4, batch * 3) matrix product, forward and backward (blending the transforms first and then taking
-    one 3x4 matrix-vector product per point costs a batched product of N tiny matrices each way)."""
+    On the CPU, with weights that need no gradient and at most `_SPARSE_JOINTS` nonzero weights per point
+    (skinning templates), numba kernels visit each point's few joints (`_SkinPoints`). Otherwise
+    sum_j w_nj A_j [p_n; 1], bilinear in the weights and the homogeneous point, is one (N, 24 * 4) x
+    (24 * 4, batch * 3) matrix product, forward and backward (`skin_points_product`; blending the transforms
+    first and then taking one 3x4 matrix-vector product per point costs a batched product of N tiny matrices
+    each way)."""
+    on_cpu = points.device.type == "cpu" and transforms.device.type == "cpu"
+    if on_cpu and not weights.requires_grad and points.dtype == transforms.dtype == weights.dtype:
+        slots = int((weights != 0).sum(dim=1).max()) if len(weights) else 0
+        if slots <= _SPARSE_JOINTS:
+            joints = weights.abs().topk(max(slots, 1), dim=1).indices  # largest first: a zero ends a point's list
+            return _SkinPoints.apply(points, transforms, joints.int(), weights.gather(1, joints))
+    return skin_points_product(points, weights, transforms)
+
+
+def skin_points_product(points: torch.Tensor, weights: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
+    """`skin_points` as one matrix product on any device, differentiable in all three inputs."""
     homogeneous = torch.cat([points, torch.ones_like(points[:, :1])], dim=1)
     lifted = (weights[:, :, None] * homogeneous[:, None, :]).reshape(len(points), NUM_JOINTS * 4)
     blocks = transforms[..., :3, :].reshape(-1, NUM_JOINTS, 3, 4).permute(1, 3, 0, 2).reshape(NUM_JOINTS * 4, -1)
     posed = (lifted @ blocks).reshape(len(points), -1, 3)
     return posed.transpose(0, 1).reshape(transforms.shape[:-3] + (len(points), 3))
+
+
+@numba.njit(cache=True, parallel=True)
+def _skin_points_forward(points, joints, values, transforms, posed) -> None:
+    """posed[b, n] = sum_k values[n, k] (transforms[b, joints[n, k]] [points[n]; 1]) over a point's nonzero
+    weights (`values` ordered largest first, so the first zero ends the list). One `prange` over the batch."""
+    for b in numba.prange(transforms.shape[0]):
+        for n in range(points.shape[0]):
+            x, y, z = points[n, 0], points[n, 1], points[n, 2]
+            o0 = o1 = o2 = 0.0
+            for k in range(joints.shape[1]):
+                w = values[n, k]
+                if w == 0.0:
+                    break
+                a = transforms[b, joints[n, k]]
+                o0 += w * (a[0, 0] * x + a[0, 1] * y + a[0, 2] * z + a[0, 3])
+                o1 += w * (a[1, 0] * x + a[1, 1] * y + a[1, 2] * z + a[1, 3])
+                o2 += w * (a[2, 0] * x + a[2, 1] * y + a[2, 2] * z + a[2, 3])
+            posed[b, n, 0], posed[b, n, 1], posed[b, n, 2] = o0, o1, o2
+
+
+@numba.njit(cache=True, parallel=True)
+def _skin_points_transforms_backward(points, joints, values, grad_posed, grad_transforms) -> None:
+    """grad_transforms[b, j, r] += w_nj grad_posed[b, n, r] [points[n]; 1] (zeroed beforehand; the bottom rows
+    stay zero). One `prange` over the batch: each writes its own transforms."""
+    for b in numba.prange(grad_posed.shape[0]):
+        for n in range(points.shape[0]):
+            x, y, z = points[n, 0], points[n, 1], points[n, 2]
+            for k in range(joints.shape[1]):
+                w = values[n, k]
+                if w == 0.0:
+                    break
+                g = grad_transforms[b, joints[n, k]]
+                for r in range(3):
+                    wg = w * grad_posed[b, n, r]
+                    g[r, 0] += wg * x
+                    g[r, 1] += wg * y
+                    g[r, 2] += wg * z
+                    g[r, 3] += wg
+
+
+@numba.njit(cache=True, parallel=True)
+def _skin_points_points_backward(joints, values, transforms, grad_posed, grad_points) -> None:
+    """grad_points[n] = sum over the batch of L_bn^T grad_posed[b, n], L_bn the blend of the point's joints'
+    3x3 blocks. One `prange` over the points: each sums over the batch on its own."""
+    for n in numba.prange(grad_points.shape[0]):
+        s0 = s1 = s2 = 0.0
+        for b in range(transforms.shape[0]):
+            g0, g1, g2 = grad_posed[b, n, 0], grad_posed[b, n, 1], grad_posed[b, n, 2]
+            for k in range(joints.shape[1]):
+                w = values[n, k]
+                if w == 0.0:
+                    break
+                a = transforms[b, joints[n, k]]
+                s0 += w * (a[0, 0] * g0 + a[1, 0] * g1 + a[2, 0] * g2)
+                s1 += w * (a[0, 1] * g0 + a[1, 1] * g1 + a[2, 1] * g2)
+                s2 += w * (a[0, 2] * g0 + a[1, 2] * g1 + a[2, 2] * g2)
+        grad_points[n, 0], grad_points[n, 1], grad_points[n, 2] = s0, s1, s2
+
+
+class _SkinPoints(torch.autograd.Function):
+    """(points (N, 3), transforms (..., 24, 4, 4), joints (N, K) int32, values (N, K)) -> posed (..., N, 3):
+    linear blend skinning over each point's K largest weights, on the CPU with numba; gradients for the points
+    and the transforms."""
+
+    @staticmethod
+    def forward(ctx, points: torch.Tensor, transforms: torch.Tensor, joints: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+        arrays = (_to_numpy(points), _to_numpy(joints), _to_numpy(values), _to_numpy(transforms).reshape(-1, NUM_JOINTS, 4, 4))
+        posed = np.empty((arrays[3].shape[0], len(points), 3), dtype=arrays[0].dtype)
+        _skin_points_forward(*arrays, posed)
+        ctx.arrays, ctx.batch = arrays, transforms.shape[:-3]
+        return torch.from_numpy(posed).reshape(ctx.batch + (len(points), 3))
+
+    @staticmethod
+    def backward(ctx, grad_posed: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        points, joints, values, transforms = ctx.arrays
+        grad = _to_numpy(grad_posed).reshape(transforms.shape[0], len(points), 3)
+        grad_points = grad_transforms = None
+        if ctx.needs_input_grad[0]:
+            grad_points = np.empty_like(points)
+            _skin_points_points_backward(joints, values, transforms, grad, grad_points)
+            grad_points = torch.from_numpy(grad_points)
+        if ctx.needs_input_grad[1]:
+            grad_transforms = np.zeros_like(transforms)
+            _skin_points_transforms_backward(points, joints, values, grad, grad_transforms)
+            grad_transforms = torch.from_numpy(grad_transforms).reshape(ctx.batch + (NUM_JOINTS, 4, 4))
+        return grad_points, grad_transforms, None, None
 
 
 def skin_gaussians(

@@ -425,3 +425,42 @@ def test_skin_points_blends_each_joints_transformed_point_for_any_batch_shape() 
         expected = sum(weights[n, j] * (transforms[b, c, j] @ homogeneous)[:3] for j in range(NUM_JOINTS))
         torch.testing.assert_close(posed[b, c, n], expected, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(skin_points(points, weights, transforms[1, 2]), posed[1, 2], rtol=1e-12, atol=1e-12)
+
+
+def _dense_skin(points: torch.Tensor, weights: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
+    """The definition as dense tensors: (..., N, 3) = sum_j w_nj (A_j [p_n; 1])[:3]."""
+    homogeneous = torch.cat([points, torch.ones_like(points[:, :1])], dim=1)
+    per_joint = torch.einsum("...jab,nb->...nja", transforms[..., :3, :], homogeneous)
+    return (weights[..., None] * per_joint).sum(dim=-2)
+
+
+def test_skin_points_sparse_kernels_match_the_dense_definition_and_its_gradients() -> None:
+    """Few nonzero weights per point (the kernels' path), signed and unsorted, and a point with none: the
+    posed points and the gradients for points and transforms against autograd through the dense definition."""
+    generator = torch.Generator().manual_seed(11)
+    points = torch.randn(30, 3, generator=generator, dtype=torch.float64)
+    weights = _sparse_weights(30, generator, per_point=5)
+    weights[3] *= -0.5  # signed (refine's weight changes are)
+    weights[7] = 0.0
+    transforms = torch.randn(2, 4, NUM_JOINTS, 4, 4, generator=generator, dtype=torch.float64)
+    grad = torch.randn(2, 4, 30, 3, generator=generator, dtype=torch.float64)
+    results = []
+    for skin in (skin_points, _dense_skin):
+        leaves = points.clone().requires_grad_(), transforms.clone().requires_grad_()
+        posed = skin(leaves[0], weights, leaves[1])
+        posed.backward(grad)
+        results.append((posed.detach(), leaves[0].grad, leaves[1].grad))
+    for got, expected in zip(*results):
+        torch.testing.assert_close(got, expected, rtol=1e-12, atol=1e-12)
+    assert results[0][0][:, :, 7].abs().max() == 0.0
+    assert torch.autograd.gradcheck(lambda p, t: skin_points(p, weights[:8], t), (points[:8].clone().requires_grad_(), transforms[0, :2].clone().requires_grad_()))
+
+
+def test_skin_points_with_many_nonzero_weights_per_point_still_blends_every_joint() -> None:
+    """More nonzero weights per point than the kernels take (a dense change of weights) and float32: the
+    matrix-product path, against the dense definition."""
+    generator = torch.Generator().manual_seed(12)
+    points = torch.randn(20, 3, generator=generator)
+    weights = torch.randn(20, NUM_JOINTS, generator=generator)
+    transforms = torch.randn(3, NUM_JOINTS, 4, 4, generator=generator)
+    torch.testing.assert_close(skin_points(points, weights, transforms), _dense_skin(points, weights, transforms), rtol=1e-4, atol=1e-4)
