@@ -28,7 +28,9 @@ the training frames' joints land from the true ones in the image, with `prepare`
 the workspace trained on (fitted with the body and refined in training): the mean over joints and frames and
 the worst frame, in pixels (the fitted body is not the subject's, so its joints need not meet the truth's
 even at exact poses; `--fitted-body` prints how far they lie there), and the PSNR of the training frames at
-the poses the avatar trained on, against the true frames (the mean, the first frame and the worst).
+the poses the avatar trained on, against the true frames (the mean, the first frame and the worst), beside the
+same frames of the first reference at the exact poses. OUT/training_frames.png shows the first and the worst of
+those frames: the truth, the own-video avatar, the reference.
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ from avatarperfect_cli.avatar.rendering import render_avatar
 from avatarperfect_cli.body import forward_kinematics, load_body_template, posed_joints
 from avatarperfect_cli.datasets import VideoDataset, load_people_snapshot, write_people_snapshot
 from avatarperfect_cli.datasets.people_snapshot import FrameRange
+from avatarperfect_cli.io.images import write_image
 from avatarperfect_cli.io.video import frame_writer
 from avatarperfect_cli.io.workspace import open_workspace
 from avatarperfect_cli.sample.generate import make_sample
@@ -125,13 +128,36 @@ def joint_errors(sample_train: Path, prepared: Path, workspace: Path, frames: Fr
 
 def training_psnr(workspace: Path, truth_test: Path, frames: FrameRange) -> torch.Tensor:
     """(T,) PSNR (dB) of the workspace's avatar in its training frames, at the poses it trained on, against the
-    true frames (`truth_test`: the sample's images through `prepare`'s camera)."""
+    true frames (`truth_test`: the sample's images through the camera the workspace trained with: OUT/truth-test
+    for the own video, the sample's folder for the references)."""
     opened = open_workspace(workspace)
     avatar, trained = Avatar.load(opened.require_avatar()), load_video(opened, with_images=False)
     truth = load_people_snapshot(truth_test, frames)
     with torch.no_grad():
         renders = [render_avatar(avatar, trained.body_pose[t], trained.transl[t], truth.camera, torch.ones(3)).image for t in range(len(truth))]
     return torch.tensor([metrics.psnr(render.clamp(0, 1), image) for render, image in zip(renders, truth.images)])
+
+
+def training_frames_picture(out: Path, frames: FrameRange, shown: list[int]) -> torch.Tensor:
+    """(H, W, 3) rows of training frames `shown` (indices into `frames`): the true frame, the own-video avatar
+    at the poses it trained on (through `prepare`'s camera), and the video-frames reference at the exact poses,
+    each row cropped to the person's box in the three."""
+    own, reference = open_workspace(out / "ws-own"), open_workspace(out / "ws-video-exact")
+    rows = []
+    for index in shown:
+        frame = FrameRange(frames.start + index * frames.step, frames.start + index * frames.step, 1)
+        truth, seen = load_people_snapshot(out / "sample" / "train", frame), load_people_snapshot(out / "truth-test", frame)
+        panels = [truth.images[0]]
+        for workspace, camera in ((own, seen.camera), (reference, truth.camera)):
+            avatar, trained = Avatar.load(workspace.require_avatar()), load_video(workspace, with_images=False)
+            with torch.no_grad():
+                out_image = render_avatar(avatar, trained.body_pose[index], trained.transl[index], camera, torch.ones(3)).image
+            panels.append(out_image.clamp(0, 1))
+        inked = torch.stack(panels).lt(0.98).any(dim=-1).any(dim=0)
+        ys, xs = torch.nonzero(inked, as_tuple=True)
+        rows.append(torch.cat([panel[int(ys.min()) : int(ys.max()) + 1, int(xs.min()) : int(xs.max()) + 1] for panel in panels], dim=1))
+    width = max(row.shape[1] for row in rows)
+    return torch.cat([torch.nn.functional.pad(row, (0, 0, 0, width - row.shape[1]), value=1.0) for row in rows], dim=0)
 
 
 def scores(workspace: Path, test: Path) -> dict:
@@ -212,6 +238,11 @@ def main() -> None:
     psnrs = training_psnr(out / "ws-own", out / "truth-test", training)
     print(f"training frames at the poses the avatar trained on: {psnrs.mean():.2f} dB against the true frames, "
           f"{psnrs[0]:.2f} dB in the first, {psnrs.min():.2f} dB at frame {training.start + int(psnrs.argmin()) * training.step}")
+    reference = training_psnr(out / "ws-video-exact", train, training)
+    print(f"the same frames of the reference at the exact poses: {reference.mean():.2f} dB, {reference[0]:.2f} dB in the first, "
+          f"{reference[int(psnrs.argmin())]:.2f} dB at the own video's worst")
+    write_image(out / "training_frames.png", training_frames_picture(out, training, [0, int(psnrs.argmin())]))
+    print(f"wrote {out / 'training_frames.png'}: the first and the worst training frame, truth, own video, reference")
     if args.fitted_body:
         errors = joint_errors(train, out / "prepared", fitted_body, training)["the workspace's poses"]
         print(f"training frames' joints on the fitted body at the exact poses: {errors.mean():.2f} px from the truth on average")
