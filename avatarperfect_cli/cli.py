@@ -163,7 +163,10 @@ def prepare(
         "folder with other files is refused before any frame is decoded.",
     ),  # fmt: skip
     every: int = typer.Option(1, help="Keep every N-th frame."),
-    fov: float = typer.Option(60.0, help="The camera's field of view across the longer image side, degrees (assumed)."),
+    fov: Optional[float] = typer.Option(
+        None, help="The camera's field of view across the longer image side, degrees. Default: from the 35 mm-equivalent "
+        "focal length the video records (iPhones do), else 60 (assumed).",
+    ),  # fmt: skip
     max_side: int = typer.Option(
         1080, help="Frames longer than this many pixels on their longer side are shrunk to it (0: keep the video's size)."
     ),

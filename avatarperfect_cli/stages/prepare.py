@@ -12,8 +12,8 @@ MAX_TORSO_TURN_DEGREES from the clip's upright (MediaPipe following the upper bo
 is out of the picture, as if lying on its side). The landmarks are mapped onto SMPL's 24 joints
 (LANDMARK_WEIGHTS) and `body.landmark_fit` fits the anny template's skeleton to them, all frames at once.
 
-The folder: images/, masks/ (0/1 .npy), cameras.npz (the assumed field of view unless given, principal
-point at the image centre, identity extrinsic: the world is the camera's OpenCV frame, y down, as in
+The folder: images/, masks/ (0/1 .npy), cameras.npz (the field of view given, else the one of the 35 mm-equivalent
+focal length the video records, as iPhones do, else an assumed one; principal point at the image centre, identity extrinsic: the world is the camera's OpenCV frame, y down, as in
 InstantAvatar's folders), poses.npz (thetas (T, 72), transl (T, 3), zero betas), and subject.json naming
 the anny body the poses were fitted for, so `train-initial` needs no translation offset, and marking the
 body and the poses as estimated, so `train-initial` fits the body and refines the poses by default.
@@ -41,6 +41,7 @@ from avatarperfect_cli.datasets import write_people_snapshot
 from avatarperfect_cli.datasets.people_snapshot import check_dataset_output
 from avatarperfect_cli.errors import AvatarPerfectError, InputFileError
 from avatarperfect_cli.io.paths import require_file
+from avatarperfect_cli.io.video_metadata import field_of_view_degrees, recorded_focal_length
 from avatarperfect_cli.render import Camera
 from avatarperfect_cli.training.silhouette import EDGES, touched_edges
 
@@ -86,12 +87,12 @@ LANDMARK_WEIGHTS: dict[int, dict[int, float]] = {
 
 @dataclass
 class PrepareSettings:
-    """every: keep every N-th frame; fov_degrees: the camera's field of view across the longer image side;
-    max_side: frames larger than this many pixels on their longer side are shrunk to it (0: as decoded);
+    """every: keep every N-th frame; fov_degrees: the camera's field of view across the longer image side (None:
+    the video's recorded focal length's, else DEFAULT_FOV_DEGREES); max_side: frames larger than this many pixels on their longer side are shrunk to it (0: as decoded);
     phenotype: the anny body shape the poses are fitted for (None: anny's default); fit: the pose fit."""
 
     every: int = 1
-    fov_degrees: float = DEFAULT_FOV_DEGREES
+    fov_degrees: float | None = None
     max_side: int = DEFAULT_MAX_SIDE
     phenotype: dict[str, float] | None = None
     fit: LandmarkFitConfig = field(default_factory=LandmarkFitConfig)
@@ -116,7 +117,8 @@ def prepare(video: Path, out: Path, settings: PrepareSettings | None = None, pro
     """Write the People-Snapshot folder `out` for the person in `video` (see the module doc); returns `out`.
     The folder and the video are checked before any frame is decoded."""
     settings = settings or PrepareSettings()
-    if settings.every < 1 or not (0.0 < settings.fov_degrees < 180.0) or not (settings.max_side == 0 or settings.max_side >= 16):
+    fov_out_of_range = settings.fov_degrees is not None and not 0.0 < settings.fov_degrees < 180.0
+    if settings.every < 1 or fov_out_of_range or not (settings.max_side == 0 or settings.max_side >= 16):
         raise AvatarPerfectError(
             f"--every must be at least 1, --fov in (0, 180) degrees and --max-side 0 or at least 16, got "
             f"{settings.every}, {settings.fov_degrees} and {settings.max_side}"
@@ -145,7 +147,8 @@ def prepare(video: Path, out: Path, settings: PrepareSettings | None = None, pro
         )
         landmarks = landmarks.select(~turned)
         found[np.flatnonzero(found)[turned]] = False
-    camera = assumed_camera(width, height, settings.fov_degrees)
+    fov_degrees, fov_source = field_of_view(video, settings.fov_degrees, width, height)
+    camera = assumed_camera(width, height, fov_degrees)
     cut_off = cut_off_line(landmarks.masks)
     if cut_off:
         console.print(cut_off, soft_wrap=True)
@@ -157,17 +160,31 @@ def prepare(video: Path, out: Path, settings: PrepareSettings | None = None, pro
         "phenotype": settings.phenotype,
         "prepared_from": str(Path(video).resolve()),
         "source_frames": [int(number) for number in np.asarray(frame_numbers)[found]],
-        "fov_degrees": settings.fov_degrees,
+        "fov_degrees": fov_degrees,
+        "fov_source": fov_source,
         "estimated": ["body", "poses"],  # train-initial fits the body and refines the poses by default
     }
     images = [frame for frame, keep in zip(frames, found) if keep]
     write_people_snapshot(out, images, landmarks.masks, body_pose, transl, camera, subject=subject)
+    hint = "" if fov_source == "given" else "; --fov sets your camera's"
     console.print(
-        f"wrote {out} ({len(images)} frames of {width}x{height}, a {settings.fov_degrees:g}° field of view across the "
-        "longer side; --fov sets your camera's)",
+        f"wrote {out} ({len(images)} frames of {width}x{height}, a {fov_degrees:.4g}° field of view across the "
+        f"longer side, {fov_source}{hint})",
         soft_wrap=True,
     )
     return Path(out)
+
+
+def field_of_view(video: Path, fov_degrees: float | None, width: int, height: int) -> tuple[float, str]:
+    """The field of view across the longer side of the video's width x height frames (degrees) and where it comes
+    from: `fov_degrees` when given, else the 35 mm-equivalent focal length the video records, else
+    DEFAULT_FOV_DEGREES."""
+    if fov_degrees is not None:
+        return fov_degrees, "given"
+    focal = recorded_focal_length(video)
+    if focal is None:
+        return DEFAULT_FOV_DEGREES, "assumed"
+    return field_of_view_degrees(focal, width, height), f"from the video's 35 mm-equivalent focal length of {focal:.3g} mm"
 
 
 def cut_off_line(masks: np.ndarray) -> str | None:

@@ -31,6 +31,7 @@ from avatarperfect_cli.stages.prepare import (
     NUM_LANDMARKS, Landmarks, PrepareSettings, _pose_solution, cut_off_line, detect_landmarks, joint_targets, prepare,
     read_video_frames, turned_torsos,
 )  # fmt: skip
+from tests.io.test_video_metadata import IPHONE_KEYS, metadata, movie
 
 HAS_MEDIAPIPE = importlib.util.find_spec("mediapipe") is not None
 
@@ -241,3 +242,13 @@ def test_a_clip_with_no_upright_torso_is_refused_in_one_line_and_writes_nothing(
     lines = result.output.strip().splitlines()
     assert len(lines) == 1 and "in no frame is the person's torso within 60° of the clip's upright" in lines[0], result.output
     assert not (tmp_path / "out").exists()
+
+
+def test_the_field_of_view_is_the_given_one_else_the_recorded_focal_lengths_else_assumed(tmp_path: Path) -> None:
+    (tmp_path / "iphone.mov").write_bytes(movie(metadata(IPHONE_KEYS)))  # 26 mm recorded
+    (tmp_path / "webcam.mp4").write_bytes(movie(b""))
+    expected = math.degrees(2 * math.atan(0.5 * math.hypot(36, 24) * 1920 / math.hypot(1920, 1080) / 26.0))
+    fov, source = prepare_stage.field_of_view(tmp_path / "iphone.mov", None, 1920, 1080)
+    assert fov == pytest.approx(expected) and "26 mm" in source
+    assert prepare_stage.field_of_view(tmp_path / "iphone.mov", 50.0, 1920, 1080) == (50.0, "given")
+    assert prepare_stage.field_of_view(tmp_path / "webcam.mp4", None, 1920, 1080) == (prepare_stage.DEFAULT_FOV_DEGREES, "assumed")
