@@ -1,7 +1,7 @@
 """The own-video path end to end on a synthetic subject whose truth is known (docs/real-data.md).
 
     python -m benchmarks.own_video OUT [--preset default] [--resolution 512] [--frames 100] [--iterations 2000] [--fov DEG] [--split]
-                                       [--cut ROWS] [--fitted-body]
+                                       [--cut ROWS] [--fitted-body] [--true-poses PART ...]
 
 1. `make-sample`'s turn-around of the preset (OUT/sample/train: exact poses, exact masks, white background);
    with `--cut ROWS` every frame keeps only its top ROWS pixel rows (OUT/sample/train-cut: the frame cuts the
@@ -21,6 +21,12 @@
    video's). `--fitted-body` trains the first reference's frames and exact poses once more on the body fitted
    to their masks (`--body-shape fit`) and scores both with the test poses refined too: what the fitted body
    costs, apart from the poses and the camera.
+6. `--true-poses root limbs all` trains the prepared folder once per PART with that part of its poses replaced
+   by the truth's, seen through `prepare`'s camera (root: the root orientation and the translation, so the
+   body stands where the truth stands; limbs: every other joint's rotation; all: both), everything else as
+   for the own video (the body and all poses still fitted to the masks and refined in training), and scores
+   each on the odd frames whose poses carry the same replacement (OUT/truth-test-true-PART), and prints its
+   training frames' PSNR at the poses it trained on: which of the estimates the gap to the reference comes from.
 
 Prints one row per path: held-out IoU, PSNR and SSIM (given and refined poses), the Gaussian count and the
 share of Gaussians longer than 3 cm; the comparison pictures are in each workspace's eval folder. Then how far
@@ -37,6 +43,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -52,6 +59,7 @@ from avatarperfect_cli.datasets.people_snapshot import FrameRange
 from avatarperfect_cli.io.images import write_image
 from avatarperfect_cli.io.video import frame_writer
 from avatarperfect_cli.io.workspace import open_workspace
+from avatarperfect_cli.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from avatarperfect_cli.sample.generate import make_sample
 from avatarperfect_cli.stages.workspace_data import body_template, load_video, transl_offset
 from avatarperfect_cli.training import metrics
@@ -60,6 +68,31 @@ from benchmarks.cut_frames import cut_frames
 from benchmarks.mask_error import long_shares
 
 CLI = [sys.executable, "-m", "avatarperfect_cli"]
+
+
+POSE_PARTS = ("root", "limbs", "all")
+
+
+def with_true_poses(sample_train: Path, prepared: Path, out: Path, test_out: Path, part: str) -> None:
+    """A copy of the prepared folder at `out` with the `part` of its poses (POSE_PARTS) replaced by the truth's
+    in `prepare`'s camera frame, and at `test_out` the true frames with the same poses and `prepare`'s camera."""
+    truth, video = load_people_snapshot(sample_train, with_images=False), load_people_snapshot(prepared, with_images=False)
+    body_pose, transl = video.body_pose.clone(), video.transl.clone()
+    if part in ("root", "all"):
+        # truth world -> camera -> prepare's world; the body turns about its pelvis, which stays put
+        change = torch.linalg.inv(video.camera.world_to_camera.double()) @ truth.camera.world_to_camera.double()
+        rotation, shift = change[:3, :3], change[:3, 3]
+        pelvis = load_body_template("anny", phenotype=truth.subject["phenotype"]).rest_joints[0].double()
+        body_pose[:, 0] = matrix_to_axis_angle(rotation @ axis_angle_to_matrix(truth.body_pose[:, 0].double())).float()
+        transl = ((pelvis + truth.transl.double()) @ rotation.T + shift - pelvis).float()
+    if part in ("limbs", "all"):
+        body_pose[:, 1:] = truth.body_pose[:, 1:]
+    shutil.copytree(prepared, out, dirs_exist_ok=True)
+    mixed_folder(sample_train, prepared, test_out, "truth", "truth", "video")
+    for folder in (out, test_out):
+        poses = dict(np.load(folder / "poses.npz"))
+        poses["thetas"], poses["transl"] = body_pose.reshape(len(body_pose), -1).numpy(), transl.numpy()
+        np.savez(folder / "poses.npz", **poses)
 
 
 def background(height: int, width: int) -> np.ndarray:
@@ -176,6 +209,8 @@ def main() -> None:
     parser.add_argument("--split", action="store_true", help="also the references with only the images or only the masks the video's")
     parser.add_argument("--cut", type=int, help="keep only the top CUT pixel rows of every frame (a person the frame cuts off)")
     parser.add_argument("--fitted-body", action="store_true", help="also the first reference on the body fitted to its masks")
+    parser.add_argument("--true-poses", nargs="+", choices=POSE_PARTS, default=[], metavar="PART",
+                        help=f"also the own video with this part of its poses the truth's ({', '.join(POSE_PARTS)})")
     args = parser.parse_args()
     out, frames = args.out, args.frames
     train, even, odd = out / "sample" / "train", f"0:{frames - 1}:2", f"1:{frames - 1}:2"
@@ -210,6 +245,10 @@ def main() -> None:
         run("train-initial", out / "video-exact", fitted_body, "--frames", even, "--body-shape", "fit", *iterations, "--force")
         for workspace in (fitted_body, out / "ws-video-exact"):
             run("evaluate", workspace, "--test", train, "--frames", odd, "--refine-poses")
+    for part in args.true_poses:
+        with_true_poses(train, out / "prepared", out / f"prepared-true-{part}", out / f"truth-test-true-{part}", part)
+        run("train-initial", out / f"prepared-true-{part}", out / f"ws-true-{part}", "--frames", even, *iterations, "--force")
+        run("evaluate", out / f"ws-true-{part}", "--test", out / f"truth-test-true-{part}", "--frames", odd, "--refine-poses")
     own = scores(out / "ws-own", out / "truth-test")
     rows = [
         ("own video, given poses", out / "ws-own", own["mean"]),
@@ -218,6 +257,8 @@ def main() -> None:
           for name, (label, _, _) in references.items()],
         ("the sample's frames, exact poses and body", out / "ws-exact", scores(out / "ws-exact", train)["mean"]),
     ]  # fmt: skip
+    rows += [(f"own video, {part} of the poses the truth's, test poses refined", out / f"ws-true-{part}",
+              scores(out / f"ws-true-{part}", out / f"truth-test-true-{part}")["refined_poses"]["mean"]) for part in args.true_poses]
     if args.fitted_body:
         fitted, exact = scores(fitted_body, train), scores(out / "ws-video-exact", train)
         rows += [
@@ -238,6 +279,9 @@ def main() -> None:
     psnrs = training_psnr(out / "ws-own", out / "truth-test", training)
     print(f"training frames at the poses the avatar trained on: {psnrs.mean():.2f} dB against the true frames, "
           f"{psnrs[0]:.2f} dB in the first, {psnrs.min():.2f} dB at frame {training.start + int(psnrs.argmin()) * training.step}")
+    for part in args.true_poses:
+        print(f"the same with {part} of the poses the truth's: "
+              f"{training_psnr(out / f'ws-true-{part}', out / f'truth-test-true-{part}', training).mean():.2f} dB")
     reference = training_psnr(out / "ws-video-exact", train, training)
     print(f"the same frames of the reference at the exact poses: {reference.mean():.2f} dB, {reference[0]:.2f} dB in the first, "
           f"{reference[int(psnrs.argmin())]:.2f} dB at the own video's worst")
