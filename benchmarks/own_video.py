@@ -1,7 +1,7 @@
 """The own-video path end to end on a synthetic subject whose truth is known (docs/real-data.md).
 
     python -m benchmarks.own_video OUT [--preset default] [--resolution 512] [--frames 100] [--iterations 2000] [--fov DEG] [--split]
-                                       [--cut ROWS] [--fitted-body] [--true-poses PART ...]
+                                       [--cut ROWS] [--fitted-body] [--true-poses PART ...] [--true-masks]
 
 1. `make-sample`'s turn-around of the preset (OUT/sample/train: exact poses, exact masks, white background);
    with `--cut ROWS` every frame keeps only its top ROWS pixel rows (OUT/sample/train-cut: the frame cuts the
@@ -27,6 +27,9 @@
    for the own video (the body and all poses still fitted to the masks and refined in training), and scores
    each on the odd frames whose poses carry the same replacement (OUT/truth-test-true-PART), and prints its
    training frames' PSNR at the poses it trained on: which of the estimates the gap to the reference comes from.
+   `--true-masks` does the same with the prepared folder's masks replaced by the true ones (OUT/prepared-true-masks,
+   scored on OUT/truth-test), and once more with only their errors beyond the trainer's 3-px mask band put right
+   (OUT/prepared-true-masks-beyond-band): what `prepare`'s masks cost once the poses are fitted and refined.
 
 Prints one row per path: held-out IoU, PSNR and SSIM (given and refined poses), the Gaussian count and the
 share of Gaussians longer than 3 cm; the comparison pictures are in each workspace's eval folder. Then how far
@@ -48,6 +51,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
@@ -63,6 +67,7 @@ from avatarperfect_cli.rotations import axis_angle_to_matrix, matrix_to_axis_ang
 from avatarperfect_cli.sample.generate import make_sample
 from avatarperfect_cli.stages.workspace_data import body_template, load_video, transl_offset
 from avatarperfect_cli.training import metrics
+from avatarperfect_cli.training.losses import boundary_band
 from avatarperfect_cli.training.silhouette import project
 from benchmarks.cut_frames import cut_frames
 from benchmarks.mask_error import long_shares
@@ -93,6 +98,51 @@ def with_true_poses(sample_train: Path, prepared: Path, out: Path, test_out: Pat
         poses = dict(np.load(folder / "poses.npz"))
         poses["thetas"], poses["transl"] = body_pose.reshape(len(body_pose), -1).numpy(), transl.numpy()
         np.savez(folder / "poses.npz", **poses)
+
+
+def with_true_masks(sample_train: Path, prepared: Path, out: Path, beyond_band: int | None = None) -> None:
+    """A copy of the prepared folder at `out` (its frames as filmed, its camera and poses) with the sample's masks;
+    with `beyond_band`, only the pixels where they differ more than that many pixels from the prepared mask's edge
+    take the true value (the errors the trainer's mask band does not reach)."""
+    truth, video = load_people_snapshot(sample_train, downscale=1), load_people_snapshot(prepared, downscale=1)
+    shutil.copytree(prepared, out, dirs_exist_ok=True)
+    for frame, true, mask in zip(truth.frame_ids.tolist(), truth.masks, video.masks):
+        if beyond_band is not None:
+            true = torch.where((true ^ mask) & ~boundary_band(mask, beyond_band), true, mask)
+        np.save(out / "masks" / f"mask_{frame:04d}.npy", true.numpy().astype(np.uint8))
+
+
+def mask_errors(sample_train: Path, prepared: Path, band: int = 3) -> dict[str, float]:
+    """How `prepare`'s masks differ from the true ones over all frames: the share of the true area they add
+    ("added") and leave out ("left_out"); the 90th and 99th percentiles of the wrong pixels' distances from
+    the true outline, pixels ("p90", "p99"); the share of the wrong pixels lying more than `band` pixels from
+    the prepared mask's edge ("beyond_band": outside the trainer's mask band, where the mask alone decides)."""
+    truth, video = load_people_snapshot(sample_train, downscale=1), load_people_snapshot(prepared, downscale=1)
+    added = left_out = beyond = 0
+    distances = []
+    for true, mask in zip(truth.masks, video.masks):
+        wrong, inside = (true ^ mask).numpy(), true.numpy().astype(np.uint8)
+        added, left_out = added + int((mask & ~true).sum()), left_out + int((true & ~mask).sum())
+        beyond += int((wrong & ~boundary_band(mask, band).numpy()).sum())
+        outline = np.where(inside, cv2.distanceTransform(inside, cv2.DIST_L2, 5), cv2.distanceTransform(1 - inside, cv2.DIST_L2, 5))
+        distances.append(outline[wrong])
+    area, wrong_count = int(truth.masks.sum()), max(added + left_out, 1)
+    p90, p99 = np.percentile(np.concatenate(distances), [90, 99]) if added + left_out else (0.0, 0.0)
+    return {"added": added / area, "left_out": left_out / area, "p90": float(p90), "p99": float(p99), "beyond_band": beyond / wrong_count}
+
+
+def mask_errors_picture(sample_train: Path, prepared: Path, frame: int) -> torch.Tensor:
+    """(H, W, 3) the prepared frame `frame` at half brightness, red where `prepare`'s mask adds to the true one
+    and blue where it leaves the person out, cropped to the person's box grown by 20 px."""
+    span = FrameRange(frame, frame, 1)
+    truth, video = load_people_snapshot(sample_train, span, downscale=1), load_people_snapshot(prepared, span, downscale=1)
+    true, mask = truth.masks[0], video.masks[0]
+    picture = video.filmed[0].float() / 255.0 * 0.5
+    picture[mask & ~true] = torch.tensor([1.0, 0.0, 0.0])
+    picture[true & ~mask] = torch.tensor([0.0, 0.3, 1.0])
+    ys, xs = torch.nonzero(true | mask, as_tuple=True)
+    height, width = true.shape
+    return picture[max(int(ys.min()) - 20, 0) : min(int(ys.max()) + 21, height), max(int(xs.min()) - 20, 0) : min(int(xs.max()) + 21, width)]
 
 
 def background(height: int, width: int) -> np.ndarray:
@@ -211,6 +261,7 @@ def main() -> None:
     parser.add_argument("--fitted-body", action="store_true", help="also the first reference on the body fitted to its masks")
     parser.add_argument("--true-poses", nargs="+", choices=POSE_PARTS, default=[], metavar="PART",
                         help=f"also the own video with this part of its poses the truth's ({', '.join(POSE_PARTS)})")
+    parser.add_argument("--true-masks", action="store_true", help="also the own video with the true masks in place of prepare's")
     args = parser.parse_args()
     out, frames = args.out, args.frames
     train, even, odd = out / "sample" / "train", f"0:{frames - 1}:2", f"1:{frames - 1}:2"
@@ -249,6 +300,11 @@ def main() -> None:
         with_true_poses(train, out / "prepared", out / f"prepared-true-{part}", out / f"truth-test-true-{part}", part)
         run("train-initial", out / f"prepared-true-{part}", out / f"ws-true-{part}", "--frames", even, *iterations, "--force")
         run("evaluate", out / f"ws-true-{part}", "--test", out / f"truth-test-true-{part}", "--frames", odd, "--refine-poses")
+    mask_variants = {"true-masks": None, "true-masks-beyond-band": 3} if args.true_masks else {}
+    for name, beyond_band in mask_variants.items():
+        with_true_masks(train, out / "prepared", out / f"prepared-{name}", beyond_band)
+        run("train-initial", out / f"prepared-{name}", out / f"ws-{name}", "--frames", even, *iterations, "--force")
+        run("evaluate", out / f"ws-{name}", "--test", out / "truth-test", "--frames", odd, "--refine-poses")
     own = scores(out / "ws-own", out / "truth-test")
     rows = [
         ("own video, given poses", out / "ws-own", own["mean"]),
@@ -259,6 +315,9 @@ def main() -> None:
     ]  # fmt: skip
     rows += [(f"own video, {part} of the poses the truth's, test poses refined", out / f"ws-true-{part}",
               scores(out / f"ws-true-{part}", out / f"truth-test-true-{part}")["refined_poses"]["mean"]) for part in args.true_poses]
+    labels = {"true-masks": "the true masks", "true-masks-beyond-band": "prepare's masks true more than 3 px from their edge"}
+    rows += [(f"own video, {labels[name]}, test poses refined", out / f"ws-{name}",
+              scores(out / f"ws-{name}", out / "truth-test")["refined_poses"]["mean"]) for name in mask_variants]
     if args.fitted_body:
         fitted, exact = scores(fitted_body, train), scores(out / "ws-video-exact", train)
         rows += [
@@ -282,6 +341,16 @@ def main() -> None:
     for part in args.true_poses:
         print(f"the same with {part} of the poses the truth's: "
               f"{training_psnr(out / f'ws-true-{part}', out / f'truth-test-true-{part}', training).mean():.2f} dB")
+    for name in mask_variants:
+        print(f"the same with {labels[name]}: {training_psnr(out / f'ws-{name}', out / 'truth-test', training).mean():.2f} dB")
+    if args.true_masks:
+        errors = mask_errors(train, out / "prepared")
+        print(f"prepare's masks add {100 * errors['added']:.1f} % of the true area and leave out {100 * errors['left_out']:.1f} %; "
+              f"of those pixels 90 % lie within {errors['p90']:.1f} px of the true outline and 99 % within {errors['p99']:.1f} px, "
+              f"and {100 * errors['beyond_band']:.0f} % more than 3 px from the mask's edge")
+        shown = training.start + int(psnrs.argmin()) * training.step
+        write_image(out / "mask_errors.png", mask_errors_picture(train, out / "prepared", shown))
+        print(f"wrote {out / 'mask_errors.png'}: frame {shown}, red where prepare's mask adds, blue where it leaves out")
     reference = training_psnr(out / "ws-video-exact", train, training)
     print(f"the same frames of the reference at the exact poses: {reference.mean():.2f} dB, {reference[0]:.2f} dB in the first, "
           f"{reference[int(psnrs.argmin())]:.2f} dB at the own video's worst")
