@@ -28,7 +28,7 @@
    each on the odd frames whose poses carry the same replacement (OUT/truth-test-true-PART), and prints its
    training frames' PSNR at the poses it trained on: which of the estimates the gap to the reference comes from.
    `--true-masks` does the same with the prepared folder's masks replaced by the true ones (OUT/prepared-true-masks,
-   scored on OUT/truth-test), and once more with only their errors beyond the trainer's 3-px mask band put right
+   scored on OUT/truth-test), and once more with only their errors beyond the trainer's mask band (3 px) put right
    (OUT/prepared-true-masks-beyond-band): what `prepare`'s masks cost once the poses are fitted and refined.
 
 Prints one row per path: held-out IoU, PSNR and SSIM (given and refined poses), the Gaussian count and the
@@ -69,6 +69,7 @@ from avatarperfect_cli.stages.workspace_data import body_template, load_video, t
 from avatarperfect_cli.training import metrics
 from avatarperfect_cli.training.losses import boundary_band
 from avatarperfect_cli.training.silhouette import project
+from avatarperfect_cli.training.trainer import TrainConfig
 from benchmarks.cut_frames import cut_frames
 from benchmarks.mask_error import long_shares
 
@@ -76,6 +77,7 @@ CLI = [sys.executable, "-m", "avatarperfect_cli"]
 
 
 POSE_PARTS = ("root", "limbs", "all")
+MASK_BAND = TrainConfig().mask_band  # pixels either side of a mask's edge where the trainer lets the frame decide
 
 
 def with_true_poses(sample_train: Path, prepared: Path, out: Path, test_out: Path, part: str) -> None:
@@ -112,7 +114,7 @@ def with_true_masks(sample_train: Path, prepared: Path, out: Path, beyond_band: 
         np.save(out / "masks" / f"mask_{frame:04d}.npy", true.numpy().astype(np.uint8))
 
 
-def mask_errors(sample_train: Path, prepared: Path, band: int = 3) -> dict[str, float]:
+def mask_errors(sample_train: Path, prepared: Path, band: int = MASK_BAND) -> dict[str, float]:
     """How `prepare`'s masks differ from the true ones over all frames: the share of the true area they add
     ("added") and leave out ("left_out"); the 90th and 99th percentiles of the wrong pixels' distances from
     the true outline, pixels ("p90", "p99"); the share of the wrong pixels lying more than `band` pixels from
@@ -126,9 +128,9 @@ def mask_errors(sample_train: Path, prepared: Path, band: int = 3) -> dict[str, 
         beyond += int((wrong & ~boundary_band(mask, band).numpy()).sum())
         outline = np.where(inside, cv2.distanceTransform(inside, cv2.DIST_L2, 5), cv2.distanceTransform(1 - inside, cv2.DIST_L2, 5))
         distances.append(outline[wrong])
-    area, wrong_count = int(truth.masks.sum()), max(added + left_out, 1)
-    p90, p99 = np.percentile(np.concatenate(distances), [90, 99]) if added + left_out else (0.0, 0.0)
-    return {"added": added / area, "left_out": left_out / area, "p90": float(p90), "p99": float(p99), "beyond_band": beyond / wrong_count}
+    area, wrong = int(truth.masks.sum()), added + left_out
+    p90, p99 = np.percentile(np.concatenate(distances), [90, 99]) if wrong else (0.0, 0.0)
+    return {"added": added / area, "left_out": left_out / area, "p90": float(p90), "p99": float(p99), "beyond_band": beyond / max(wrong, 1)}
 
 
 def mask_errors_picture(sample_train: Path, prepared: Path, frame: int) -> torch.Tensor:
@@ -300,7 +302,7 @@ def main() -> None:
         with_true_poses(train, out / "prepared", out / f"prepared-true-{part}", out / f"truth-test-true-{part}", part)
         run("train-initial", out / f"prepared-true-{part}", out / f"ws-true-{part}", "--frames", even, *iterations, "--force")
         run("evaluate", out / f"ws-true-{part}", "--test", out / f"truth-test-true-{part}", "--frames", odd, "--refine-poses")
-    mask_variants = {"true-masks": None, "true-masks-beyond-band": 3} if args.true_masks else {}
+    mask_variants = {"true-masks": None, "true-masks-beyond-band": MASK_BAND} if args.true_masks else {}
     for name, beyond_band in mask_variants.items():
         with_true_masks(train, out / "prepared", out / f"prepared-{name}", beyond_band)
         run("train-initial", out / f"prepared-{name}", out / f"ws-{name}", "--frames", even, *iterations, "--force")
@@ -315,7 +317,7 @@ def main() -> None:
     ]  # fmt: skip
     rows += [(f"own video, {part} of the poses the truth's, test poses refined", out / f"ws-true-{part}",
               scores(out / f"ws-true-{part}", out / f"truth-test-true-{part}")["refined_poses"]["mean"]) for part in args.true_poses]
-    labels = {"true-masks": "the true masks", "true-masks-beyond-band": "prepare's masks true more than 3 px from their edge"}
+    labels = {"true-masks": "the true masks", "true-masks-beyond-band": f"prepare's masks true more than {MASK_BAND} px from their edge"}
     rows += [(f"own video, {labels[name]}, test poses refined", out / f"ws-{name}",
               scores(out / f"ws-{name}", out / "truth-test")["refined_poses"]["mean"]) for name in mask_variants]
     if args.fitted_body:
@@ -347,7 +349,7 @@ def main() -> None:
         errors = mask_errors(train, out / "prepared")
         print(f"prepare's masks add {100 * errors['added']:.1f} % of the true area and leave out {100 * errors['left_out']:.1f} %; "
               f"of those pixels 90 % lie within {errors['p90']:.1f} px of the true outline and 99 % within {errors['p99']:.1f} px, "
-              f"and {100 * errors['beyond_band']:.0f} % more than 3 px from the mask's edge")
+              f"and {100 * errors['beyond_band']:.0f} % more than {MASK_BAND} px from the mask's edge")
         shown = training.start + int(psnrs.argmin()) * training.step
         write_image(out / "mask_errors.png", mask_errors_picture(train, out / "prepared", shown))
         print(f"wrote {out / 'mask_errors.png'}: frame {shown}, red where prepare's mask adds, blue where it leaves out")
