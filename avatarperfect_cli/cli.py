@@ -170,6 +170,10 @@ def prepare(
     max_side: int = typer.Option(
         1080, help="Frames longer than this many pixels on their longer side are shrunk to it (0: keep the video's size)."
     ),
+    max_frames: int = typer.Option(
+        300, help="A clip that would keep more frames keeps every N-th for the smallest N that leaves at most this many "
+        "(0: no limit).",
+    ),  # fmt: skip
 ) -> None:
     """Make a People-Snapshot folder from your own video: frames, person masks, fitted SMPL poses, a camera
     (needs MediaPipe's pose models: the package's optional extra 'prepare'; see docs/real-data.md)."""
@@ -179,10 +183,11 @@ def prepare(
     from avatarperfect_cli.stages.prepare import prepare as run
 
     _require_in_range("--every", every, 1)
+    _require_in_range("--max-frames (or 0: no limit)", max_frames, 0)
     if max_side != 0:
         _require_in_range("--max-side (or 0: the video's size)", max_side, MIN_RESOLUTION)
     check_writable_folder(out_dir)
-    run(video, out_dir, PrepareSettings(every=every, fov_degrees=fov, max_side=max_side))
+    run(video, out_dir, PrepareSettings(every=every, fov_degrees=fov, max_side=max_side, max_frames=max_frames))
 
 
 @app.command("train-initial")

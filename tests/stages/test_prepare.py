@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib.util
 import math
+import struct
 import subprocess
 import sys
 from pathlib import Path
@@ -151,6 +152,34 @@ def test_frames_longer_than_max_side_are_shrunk_to_it_with_their_aspect(tmp_path
         assert np.abs(frames[1] - block_means).max() <= 0.5 + 1e-9
 
 
+def rotated_a_quarter_turn(mp4: bytes) -> bytes:
+    """`mp4` with its (one) track header's display matrix turning the stored frames 90° clockwise, as a phone
+    writes a clip filmed upright: [[0, 1, 0], [-1, 0, 0], [0, 0, 1]] in 16.16 fixed point (the last in 2.30)."""
+    data = bytearray(mp4)
+    start = data.index(b"tkhd") + 4  # the box's payload: version, flags, then the times and ids
+    version = data[start]
+    matrix = start + 4 + (20 if version == 0 else 32) + 16  # past the times, id and duration; the reserved, layer, group, volume
+    assert struct.unpack_from(">9i", data, matrix) == (65536, 0, 0, 0, 65536, 0, 0, 0, 1 << 30)  # the identity
+    struct.pack_into(">9i", data, matrix, 0, 65536, 0, -65536, 0, 0, 0, 0, 1 << 30)
+    return bytes(data)
+
+
+def test_a_portrait_clip_stored_sideways_is_read_upright(tmp_path: Path) -> None:
+    """A phone films upright into sideways frames and records the turn; `prepare` reads what the person saw."""
+    upright = np.zeros((80, 48, 3), np.float32)
+    upright[:16, :12] = 1.0  # a white corner at the top left tells every turn and mirror apart
+    stored = np.rot90(upright, k=1)  # what the phone stores: the frame turned a quarter anticlockwise
+    with frame_writer(tmp_path / "stored.mp4", 80, 48, 25.0) as write:
+        for _ in range(3):
+            write(torch.from_numpy(stored.copy()))
+    (tmp_path / "portrait.mp4").write_bytes(rotated_a_quarter_turn((tmp_path / "stored.mp4").read_bytes()))
+    (sideways,), _ = read_video_frames(tmp_path / "stored.mp4", 3)
+    frames, numbers = read_video_frames(tmp_path / "portrait.mp4", 1)
+    assert sideways.shape == (48, 80, 3) and numbers == [0, 1, 2]
+    assert all(frame.shape == (80, 48, 3) for frame in frames)
+    assert np.abs(frames[0] / 255.0 - upright).mean() < 0.02
+
+
 def test_silhouette_rows_at_the_image_edge_are_unknown() -> None:
     """A person the frame cuts off at the feet (the mask reaches the last row) or the head (the first row)
     has no bottom or top edge to fit: NaN there, the edge row elsewhere."""
@@ -242,6 +271,65 @@ def test_a_clip_with_no_upright_torso_is_refused_in_one_line_and_writes_nothing(
     lines = result.output.strip().splitlines()
     assert len(lines) == 1 and "in no frame is the person's torso within 60° of the clip's upright" in lines[0], result.output
     assert not (tmp_path / "out").exists()
+
+
+def test_the_frame_stride_is_the_smallest_that_keeps_at_most_max_frames() -> None:
+    for count in range(1, 200):
+        for every in range(1, 6):
+            assert prepare_stage.frame_stride(count, every, 0) == every
+            for max_frames in range(1, 40):
+                stride = prepare_stage.frame_stride(count, every, max_frames)
+                kept = len(range(0, count, stride))
+                if len(range(0, count, every)) <= max_frames:
+                    assert stride == every
+                else:
+                    assert stride > every and kept <= max_frames < len(range(0, count, stride - 1))
+
+
+class _UncountedCapture:
+    """OpenCV's capture of a video whose container records no frame count, as some streams do."""
+
+    open_video = cv2.VideoCapture
+
+    def __init__(self, path: str) -> None:
+        self.capture = self.open_video(path)
+
+    def get(self, property_id: int) -> float:
+        return 0.0 if property_id == cv2.CAP_PROP_FRAME_COUNT else self.capture.get(property_id)
+
+    def grab(self) -> bool:
+        return self.capture.grab()
+
+    def release(self) -> None:
+        self.capture.release()
+
+
+def test_frames_are_counted_by_the_container_else_one_by_one(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    write_noise_video(tmp_path / "clip.mp4", frames=7, size=32)
+    assert prepare_stage.frame_count(tmp_path / "clip.mp4") == 7
+    monkeypatch.setattr(prepare_stage.cv2, "VideoCapture", _UncountedCapture)
+    assert prepare_stage.frame_count(tmp_path / "clip.mp4") == 7
+
+
+def test_a_long_clip_keeps_at_most_max_frames_spread_over_it_and_says_so(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """12 frames, --max-frames 4: one in 3 (frames 0, 3, 6, 9) reach the person finder, and one line says so."""
+    write_noise_video(tmp_path / "clip.mp4", frames=12, size=32)
+    seen: list[np.ndarray] = []
+
+    def detect(pose_solution, frames, progress=True):
+        seen.extend(frames)
+        return _torso_landmarks([80.0, -80.0] * (len(frames) // 2)), np.ones(len(frames), bool)  # refused after
+
+    monkeypatch.setattr(prepare_stage, "_pose_solution", lambda: None)
+    monkeypatch.setattr(prepare_stage, "detect_landmarks", detect)
+    result = CliRunner().invoke(app, ["prepare", str(tmp_path / "clip.mp4"), str(tmp_path / "out"), "--max-frames", "4"])
+    every_third, _ = read_video_frames(tmp_path / "clip.mp4", 3)
+    assert len(seen) == 4 and all(np.array_equal(a, b) for a, b in zip(seen, every_third))
+    first = result.output.strip().splitlines()[0]
+    assert first == f"{tmp_path / 'clip.mp4'}: 12 frames; keeping one in 3, 4 frames (--max-frames sets the most)", result.output
+    seen.clear()
+    CliRunner().invoke(app, ["prepare", str(tmp_path / "clip.mp4"), str(tmp_path / "out"), "--max-frames", "12"])
+    assert len(seen) == 12
 
 
 def test_the_field_of_view_is_the_given_one_else_the_recorded_focal_lengths_else_assumed(tmp_path: Path) -> None:
