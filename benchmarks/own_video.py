@@ -36,7 +36,9 @@ share of Gaussians longer than 3 cm; the comparison pictures are in each workspa
 the training frames' joints land from the true ones in the image, with `prepare`'s poses and with the poses
 the workspace trained on (fitted with the body and refined in training): the mean over joints and frames and
 the worst frame, in pixels (the fitted body is not the subject's, so its joints need not meet the truth's
-even at exact poses; `--fitted-body` prints how far they lie there), and the PSNR of the training frames at
+even at exact poses; `--fitted-body` prints how far they lie there); how the trained poses err about the
+pelvis apart from what stays the same all clip long (`pose_drift`), across the image and along the viewing
+direction; and the PSNR of the training frames at
 the poses the avatar trained on, against the true frames (the mean, the first frame and the worst), beside the
 same frames of the first reference at the exact poses. OUT/training_frames.png shows the first and the worst of
 those frames: the truth, the own-video avatar, the reference.
@@ -211,6 +213,39 @@ def joint_errors(sample_train: Path, prepared: Path, workspace: Path, frames: Fr
     }
 
 
+JOINT_GROUPS = {"all joints": list(range(24)), "hands and wrists": [20, 21, 22, 23], "ankles and feet": [7, 8, 10, 11]}
+
+
+def camera_frame_joints(video: VideoDataset, rest_joints: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The video's posed joints (T, 24, 3) metres in its camera's frame, and its root orientations there (T, 3, 3)."""
+    rest_joints = rest_joints.float()
+    world = posed_joints(forward_kinematics(video.body_pose.float(), rest_joints, video.transl.float()), rest_joints)
+    world_to_camera = torch.as_tensor(video.camera.world_to_camera).float()
+    rotation, translation = world_to_camera[:3, :3], world_to_camera[:3, 3]
+    return world @ rotation.T + translation, rotation @ axis_angle_to_matrix(video.body_pose[:, 0].float())
+
+
+def pose_drift(sample_train: Path, poses: VideoDataset, rest_joints: torch.Tensor, frames: FrameRange) -> dict[str, tuple[float, float]]:
+    """How `poses` (the training frames', on the body whose rest joints are `rest_joints`) err about the pelvis, apart
+    from what stays the same all clip long: each joint's offset from the pelvis against the truth's, in the true
+    body's frame, less its mean over the frames (a fitted skeleton's own proportions), seen in the camera's axes.
+    Per group of JOINT_GROUPS: the mean (across the image, along the viewing direction), cm."""
+    truth = load_people_snapshot(sample_train, frames, with_images=False)
+    true_joints, true_roots = camera_frame_joints(truth, load_body_template("anny", phenotype=truth.subject["phenotype"]).rest_joints)
+    joints, _ = camera_frame_joints(poses, rest_joints)
+    about_pelvis = (joints - joints[:, :1]) - (true_joints - true_joints[:, :1])
+    in_body = torch.einsum("tji,tkj->tki", true_roots, about_pelvis)
+    changing = torch.einsum("tij,tkj->tki", true_roots, in_body - in_body.mean(dim=0))
+    return {
+        name: (100 * changing[:, joints, :2].norm(dim=-1).mean().item(), 100 * changing[:, joints, 2].abs().mean().item())
+        for name, joints in JOINT_GROUPS.items()
+    }
+
+
+def pose_drift_line(label: str, drift: dict[str, tuple[float, float]]) -> str:
+    return f"| {label} | " + " | ".join(f"{across:.2f} / {along:.2f}" for across, along in drift.values()) + " |"
+
+
 def training_psnr(workspace: Path, truth_test: Path, frames: FrameRange) -> torch.Tensor:
     """(T,) PSNR (dB) of the workspace's avatar in its training frames, at the poses it trained on, against the
     true frames (`truth_test`: the sample's images through the camera the workspace trained with: OUT/truth-test
@@ -337,6 +372,21 @@ def main() -> None:
         worst = int(errors.argmax())
         print(f"training frames' joints with {name}: {errors.mean():.2f} px from the truth on average, "
               f"{errors[worst]:.2f} px at frame {training.start + worst * training.step}")
+    opened = open_workspace(out / "ws-own")
+    given = load_people_snapshot(out / "prepared", training, with_images=False)
+    given.transl = given.transl + transl_offset(opened)
+    trained = {"prepare's poses": (given, opened), "the poses the own video trained on": (load_video(opened, with_images=False), opened)}
+    for part in args.true_poses:
+        variant = open_workspace(out / f"ws-true-{part}")
+        trained[f"the same from {part} of the poses the truth's"] = (load_video(variant, with_images=False), variant)
+    for name in mask_variants:
+        variant = open_workspace(out / f"ws-{name}")
+        trained[f"the same with {labels[name]}"] = (load_video(variant, with_images=False), variant)
+    print("training poses' error about the pelvis that changes over the clip, across the image / along the view (cm)")
+    print("| poses | " + " | ".join(JOINT_GROUPS) + " |\n|---|" + "---:|" * len(JOINT_GROUPS))
+    for label, (poses, workspace) in trained.items():
+        rest_joints = body_template(workspace, workspace.manifest["body_model"]).rest_joints
+        print(pose_drift_line(label, pose_drift(train, poses, rest_joints, training)))
     psnrs = training_psnr(out / "ws-own", out / "truth-test", training)
     print(f"training frames at the poses the avatar trained on: {psnrs.mean():.2f} dB against the true frames, "
           f"{psnrs[0]:.2f} dB in the first, {psnrs.min():.2f} dB at frame {training.start + int(psnrs.argmin()) * training.step}")
