@@ -189,11 +189,15 @@ def decoded_psnr(sample_train: Path, prepared: Path, inset: int = 3) -> float:
     return float(-10.0 * torch.log10((video.images - truth.images)[inside].square().mean()))
 
 
+def world_joints(video: VideoDataset, rest_joints: torch.Tensor) -> torch.Tensor:
+    """(T, 24, 3) metres, world frame: the video's posed joints of the body whose rest joints are `rest_joints` (24, 3)."""
+    rest_joints = rest_joints.float()
+    return posed_joints(forward_kinematics(video.body_pose.float(), rest_joints, video.transl.float()), rest_joints)
+
+
 def image_joints(video: VideoDataset, rest_joints: torch.Tensor) -> torch.Tensor:
     """(T, 24, 2) pixels: the video's posed joints of the body whose rest joints are `rest_joints` (24, 3), in its camera."""
-    rest_joints = rest_joints.float()
-    world = posed_joints(forward_kinematics(video.body_pose.float(), rest_joints, video.transl.float()), rest_joints)
-    return project(world.reshape(-1, 3), video.camera).reshape(len(video), -1, 2)
+    return project(world_joints(video, rest_joints).reshape(-1, 3), video.camera).reshape(len(video), -1, 2)
 
 
 def given_poses(prepared: Path, workspace: Workspace, frames: FrameRange) -> VideoDataset:
@@ -224,8 +228,7 @@ JOINT_GROUPS = {"all joints": list(range(24)), "hands and wrists": [20, 21, 22, 
 
 def camera_frame_joints(video: VideoDataset, rest_joints: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The video's posed joints (T, 24, 3) metres in its camera's frame, and its root orientations there (T, 3, 3)."""
-    rest_joints = rest_joints.float()
-    world = posed_joints(forward_kinematics(video.body_pose.float(), rest_joints, video.transl.float()), rest_joints)
+    world = world_joints(video, rest_joints)
     world_to_camera = torch.as_tensor(video.camera.world_to_camera).float()
     rotation, translation = world_to_camera[:3, :3], world_to_camera[:3, 3]
     return world @ rotation.T + translation, rotation @ axis_angle_to_matrix(video.body_pose[:, 0].float())

@@ -2,7 +2,7 @@
 
     python -m benchmarks.study OUT_DIR [--presets default female tall] [--rounds 5] [--resolution 512]
                                [--conditions initial ap-exact ...] [--seeds 0 1 2] [--body fit|exact]
-                               [--pose-noise DEG]
+                               [--pose-noise DEG] [--max-gaussians N]
 
 For each subject (a make-sample preset) and seed one initial avatar is trained (2000 iterations, that
 seed), then every condition runs `--rounds` rounds on its own copy of it (round r of seed s draws its
@@ -248,7 +248,7 @@ def noisy_video(sample: Path, degrees: float, split: str = "train") -> Path:
 
 def run_subject(preset: str, out: Path, rounds: int, resolution: int, iterations: int, conditions: Sequence[str],
                 seed: int, images: Path | None, body: str = "fit", pose_noise: float = 0.0,
-                user: UserConfig | None = None) -> dict:  # fmt: skip
+                user: UserConfig | None = None, max_gaussians: int | None = None) -> dict:  # fmt: skip
     """Every condition on the initial avatar of `seed`; writes the held-out picture to `images` (None: none)."""
     sample = out / "sample"
     if not (sample / "test" / "subject.json").is_file():
@@ -260,6 +260,7 @@ def run_subject(preset: str, out: Path, rounds: int, resolution: int, iterations
     if not (initial / "workspace.json").is_file():
         start = time.perf_counter()
         fit = InitialFit(VideoSettings(), BodySettings(shape=body), iterations=iterations, seed=seed, refine_poses=pose_noise > 0)
+        fit.max_gaussians = max_gaussians or fit.max_gaussians
         train_initial(training, initial, fit, force=True, progress=False)
         print(f"  {preset} seed {seed}: initial avatar trained in {time.perf_counter() - start:.0f} s", flush=True)
     data = held_out(sample, 1)
@@ -348,6 +349,8 @@ def main() -> None:
     parser.add_argument("--pose-noise", type=float, default=0.0, metavar="DEG",
                         help="train on poses perturbed as a pose estimator's: DEG per joint axis, DEG/2 on the root, "
                              "DEG/2 cm on the translation; train-initial refines them (--refine-poses)")  # fmt: skip
+    parser.add_argument("--max-gaussians", type=int, default=None, metavar="N",
+                        help="cap the initial avatars' growth (train-initial --max-gaussians; default: train-initial's)")
     parser.add_argument("--user-outline-tolerance", type=float, default=UserConfig.outline_tolerance, metavar="SHARE",
                         help="the simulated user's outline tolerance (share of the image height; 0: pixel by pixel)")
     parser.add_argument("--user-truth-pose", choices=TRUTH_POSES, default=UserConfig.truth_pose,
@@ -364,7 +367,8 @@ def main() -> None:
             print(f"subject {preset}, seed {seed}", flush=True)
             images = args.out / "images" if seed == args.seeds[0] else None
             all_results[preset][seed] = run_subject(preset, args.out / preset, args.rounds, args.resolution, args.iterations,
-                                                    args.conditions, seed, images, args.body, args.pose_noise, user)  # fmt: skip
+                                                    args.conditions, seed, images, args.body, args.pose_noise, user,
+                                                    args.max_gaussians)  # fmt: skip
             (args.out / "study.json").write_text(json.dumps(all_results, indent=2))
     per_subject = {preset: combine(list(all_results[preset].values()), args.conditions) for preset in args.presets}
     mean = combine(list(per_subject.values()), args.conditions)
